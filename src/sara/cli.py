@@ -1,0 +1,208 @@
+"""The `sara` command line. Only this module configures logging and prints."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from pathlib import Path
+
+from . import __version__
+
+logger = logging.getLogger("sara")
+
+EXIT_ERROR = 2
+EXIT_INTERRUPTED = 130
+
+
+def _add_common(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--preset", default="sift-offline", help="configuration preset (default: sift-offline)")
+    p.add_argument("-s", "--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                   help="override a configuration value, e.g. -s retrieval.num_neighbors=20 (repeatable)")
+    p.add_argument("--recursive", action="store_true", help="also use images in sub-folders")
+    p.add_argument("--camera-mode", choices=["auto", "single", "per_image", "per_folder"],
+                   help="how images share cameras (default auto: one camera when all images have the same size)")
+    p.add_argument("--seed", type=int, help="random seed (default 0): the same inputs give the same pairs")
+    p.add_argument("--overwrite", action="store_true", help="redo every stage instead of resuming")
+
+
+def _add_output(p: argparse.ArgumentParser) -> None:
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bars, warnings only")
+    p.add_argument("-v", "--verbose", action="store_true", help="debug logging and COLMAP's log on the console")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="sara", description="Scene-aware pair selection for Structure-from-Motion, and the COLMAP pipeline around it.")
+    parser.add_argument("--version", action="version", version=f"sara {__version__}")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    p = sub.add_parser("run", help="images -> pairs -> matches -> COLMAP model (sparse/0) in one go")
+    p.add_argument("images", type=Path, help="folder of images")
+    p.add_argument("out", type=Path, help="output folder (created; re-running resumes)")
+    p.add_argument("--pairs", default=None,
+                   help="pair source: sara (default), exhaustive, sequential, vocabtree, retrieval, or a pairs file")
+    p.add_argument("--mapper", choices=["incremental", "global"], help="COLMAP mapper (default incremental)")
+    p.add_argument("--gt", type=Path, help="ground-truth model folder: evaluate the result against it")
+    _add_common(p)
+    _add_output(p)
+
+    p = sub.add_parser("extract", help="SIFT features into OUT/features.h5 and OUT/database.db")
+    p.add_argument("images", type=Path)
+    p.add_argument("out", type=Path)
+    _add_common(p)
+    _add_output(p)
+
+    p = sub.add_parser("pairs", help="select the pairs to match (SARA by default) into OUT/pairs.txt")
+    p.add_argument("images", type=Path)
+    p.add_argument("out", type=Path)
+    p.add_argument("--method", default=None, help="sara (default), exhaustive, sequential, vocabtree, retrieval")
+    _add_common(p)
+    _add_output(p)
+
+    p = sub.add_parser("match", help="match the pairs of a pairs file into OUT/database.db (after extract)")
+    p.add_argument("out", type=Path, help="an output folder of `sara extract`")
+    p.add_argument("--pairs", type=Path, help="pairs file (default OUT/pairs.txt)")
+    _add_common(p)
+    _add_output(p)
+
+    p = sub.add_parser("map", help="COLMAP mapping of OUT/database.db into OUT/sparse/N")
+    p.add_argument("out", type=Path, help="an output folder of `sara match`")
+    p.add_argument("--images", type=Path, help="image folder (default: the one recorded in OUT/run.json)")
+    p.add_argument("--mapper", choices=["incremental", "global"])
+    _add_common(p)
+    _add_output(p)
+
+    p = sub.add_parser("evaluate", help="compare a model with a ground-truth model")
+    p.add_argument("model", type=Path, help="a model folder, a sparse/ folder, or a sara output folder")
+    p.add_argument("gt", type=Path, help="ground-truth model folder (COLMAP text or binary)")
+    p.add_argument("--json", type=Path, help="also write the metrics to this JSON file")
+    _add_output(p)
+
+    p = sub.add_parser("demo", help="offline self-test: synthesise a scene, reconstruct it, evaluate")
+    p.add_argument("out", type=Path, nargs="?", default=Path("sara-demo"), help="output folder (default ./sara-demo)")
+    p.add_argument("--num-images", type=int, default=24)
+    _add_output(p)
+
+    from .bench import add_bench_parser
+
+    add_bench_parser(sub, _add_output)
+    return parser
+
+
+def _config(args: argparse.Namespace):
+    from .config import make_config, parse_override_args
+
+    overrides = parse_override_args(args.overrides)
+    for flag, key in (("recursive", "images.recursive"), ("camera_mode", "extract.camera_mode"),
+                      ("seed", "seed"), ("mapper", "map.mapper")):
+        value = getattr(args, flag, None)
+        if value not in (None, False):
+            overrides[key] = value
+    pairs = getattr(args, "pairs", None) if args.command == "run" else getattr(args, "method", None)
+    if pairs is not None:
+        overrides["pairs.method"] = str(pairs)
+    return make_config(args.preset, overrides)
+
+
+def _setup_logging(args: argparse.Namespace) -> None:
+    level = logging.DEBUG if args.verbose else logging.WARNING if args.quiet else logging.INFO
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(logging.Formatter("[%(name)s] %(levelname)s: %(message)s"))
+    root = logging.getLogger("sara")
+    root.handlers[:] = [handler]
+    root.setLevel(level)
+    root.propagate = False
+
+
+def _cmd_run(args: argparse.Namespace, stop_after: str | None = None) -> None:
+    from .pipeline import run
+
+    report = run(_config(args), args.images, args.out, gt_dir=getattr(args, "gt", None), overwrite=args.overwrite,
+                 progress=not args.quiet, verbose_colmap=args.verbose, stop_after=stop_after)
+    if stop_after is None:
+        print((args.out / "report.md").read_text(encoding="utf-8"))
+    elif stop_after == "pairs":
+        info = report.stages["pairs"]
+        print(f"{info['num_pairs']} pairs ({100 * info['fraction_of_exhaustive']:.1f}% of exhaustive) "
+              f"-> {args.out / 'pairs.txt'}")
+    else:
+        print(f"features of {report.stages['images']['num_images']} images -> {args.out / 'features.h5'}")
+
+
+def _cmd_match(args: argparse.Namespace) -> None:
+    from . import colmap, match
+    from .io import OutputLock
+
+    db = args.out / "database.db"
+    if not db.exists():
+        raise FileNotFoundError(f"{db} not found: run `sara extract IMAGES {args.out}` first")
+    pairs = args.pairs or args.out / "pairs.txt"
+    with OutputLock(args.out):
+        colmap.send_log_to(args.out / "logs", verbose=args.verbose)
+        info = match.run(_config(args).match, pairs, db, args.out, progress=not args.quiet)
+    print(f"matched {info['num_pairs']} pairs in {info['time_s']:.1f} s: {info['num_verified_pairs']} verified")
+
+
+def _cmd_map(args: argparse.Namespace) -> None:
+    from . import colmap, mapping, state
+    from .io import OutputLock
+    from .pipeline import load_run
+
+    db = args.out / "database.db"
+    if not db.exists():
+        raise FileNotFoundError(f"{db} not found: run `sara extract` and `sara match` first")
+    images = args.images or Path(load_run(args.out)["images_root"])
+    conf = _config(args)
+    with OutputLock(args.out):
+        colmap.send_log_to(args.out / "logs", verbose=args.verbose)
+        upstream = (state.read_record(args.out, "match") or {}).get("key", "")
+        info = mapping.run(conf.map, db, images, args.out, seed=conf.seed, upstream_key=upstream,
+                           progress=not args.quiet)
+    print(f"{info['num_components']} model(s) with {info['component_sizes']} images -> {args.out / 'sparse'}")
+
+
+def _cmd_evaluate(args: argparse.Namespace) -> None:
+    from .evaluate import format_table, run
+
+    model = args.model
+    if (model / "sparse").is_dir():
+        model = model / "sparse"
+    metrics = run(model, args.gt, args.json)
+    print(format_table(metrics))
+
+
+def _cmd_demo(args: argparse.Namespace) -> None:
+    from .demo import run_demo
+
+    print(run_demo(args.out, num_images=args.num_images, progress=not args.quiet))
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    _setup_logging(args)
+    from .extract import OutputMismatchError
+    from .io import OutputLockedError
+
+    commands = {
+        "run": _cmd_run, "extract": lambda a: _cmd_run(a, "extract"), "pairs": lambda a: _cmd_run(a, "pairs"),
+        "match": _cmd_match, "map": _cmd_map, "evaluate": _cmd_evaluate, "demo": _cmd_demo,
+    }
+    from .bench import cmd_bench
+
+    commands["bench"] = cmd_bench
+    try:
+        commands[args.command](args)
+    except KeyboardInterrupt:
+        print("sara: interrupted; run the same command again to resume where it stopped", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    except (FileNotFoundError, NotADirectoryError, ValueError, OutputLockedError, OutputMismatchError) as exc:
+        if args.verbose:
+            logger.exception("failed")
+        print(f"sara: error: {exc}", file=sys.stderr)
+        return EXIT_ERROR
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

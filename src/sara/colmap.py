@@ -1,0 +1,216 @@
+"""Every call into pycolmap goes through this module, so an API change is mended in one place.
+
+Pixel convention: COLMAP's, where the centre of the top-left pixel is (0.5, 0.5). hloc's HDF5
+files use (0, 0) for that centre; `colmap_to_hloc_keypoints` converts.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+
+from .config import ExtractConfig, MapConfig, MatchConfig
+
+logger = logging.getLogger(__name__)
+
+_CAMERA_MODES = {
+    "single": pycolmap.CameraMode.SINGLE,
+    "per_image": pycolmap.CameraMode.PER_IMAGE,
+    "per_folder": pycolmap.CameraMode.PER_FOLDER,
+    "auto": pycolmap.CameraMode.AUTO,
+}
+
+
+def version() -> str:
+    return pycolmap.__version__
+
+
+def colmap_to_hloc_keypoints(xy: np.ndarray) -> np.ndarray:
+    """(N, 2) keypoints in COLMAP's convention -> hloc's (pixel centre at integer coordinates)."""
+    return np.asarray(xy, dtype=np.float32) - 0.5
+
+
+def hloc_to_colmap_keypoints(xy: np.ndarray) -> np.ndarray:
+    return np.asarray(xy, dtype=np.float32) + 0.5
+
+
+def send_log_to(log_dir: Path | None, *, verbose: bool = False) -> None:
+    """Route COLMAP's own log into `log_dir/colmap-<time>.<pid>` (or to the console when verbose).
+
+    Without a folder and not verbose, only COLMAP's errors reach the console.
+    """
+    logging_ = pycolmap.logging
+    if verbose:
+        logging_.minloglevel = 0
+        logging_.alsologtostderr = True
+        return
+    logging_.alsologtostderr = False
+    logging_.stderrthreshold = 2  # errors still reach the console
+    if log_dir is None:
+        logging_.minloglevel = 2
+        return
+    Path(log_dir).mkdir(parents=True, exist_ok=True)
+    logging_.minloglevel = 0
+    logging_.set_log_destination(logging_.INFO, str(Path(log_dir) / "colmap-"))
+    for level in (logging_.WARNING, logging_.ERROR):
+        logging_.set_log_destination(level, "")
+
+
+def set_seed(seed: int) -> None:
+    pycolmap.set_random_seed(seed)
+
+
+@contextlib.contextmanager
+def open_database(path: Path) -> Iterator[pycolmap.Database]:
+    db = pycolmap.Database.open(str(path))
+    try:
+        yield db
+    finally:
+        db.close()
+
+
+def create_database(path: Path) -> None:
+    pycolmap.Database.open(str(path)).close()
+
+
+def import_images(db_path: Path, image_dir: Path, names: list[str], conf: ExtractConfig, camera_mode: str) -> None:
+    """Add images and their cameras to the database (no features yet)."""
+    opts = pycolmap.ImageReaderOptions()
+    opts.camera_model = conf.camera_model
+    opts.camera_params = conf.camera_params
+    opts.default_focal_length_factor = conf.default_focal_length_factor
+    pycolmap.import_images(
+        str(db_path), str(image_dir), camera_mode=_CAMERA_MODES[camera_mode], image_names=names, options=opts
+    )
+
+
+def extract_sift(db_path: Path, image_dir: Path, names: list[str], conf: ExtractConfig) -> None:
+    """SIFT (RootSIFT, COLMAP defaults) for images already imported; images with features are skipped."""
+    opts = pycolmap.FeatureExtractionOptions()
+    opts.max_image_size = conf.max_image_size
+    opts.num_threads = conf.num_threads
+    opts.sift.max_num_features = conf.max_num_features
+    reader = pycolmap.ImageReaderOptions()
+    reader.camera_model = conf.camera_model
+    reader.camera_params = conf.camera_params
+    pycolmap.extract_features(
+        str(db_path), str(image_dir), image_names=names, reader_options=reader,
+        extraction_options=opts, device=pycolmap.Device.cpu,
+    )
+
+
+def database_images(db_path: Path) -> dict[str, int]:
+    """name -> image_id of the images in a database."""
+    with open_database(db_path) as db:
+        return {im.name: im.image_id for im in db.read_all_images()}
+
+
+def read_sift(db: pycolmap.Database, image_id: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Keypoints (N, 2) float32 COLMAP pixels, scales (N,) float32 px, descriptors (N, 128) uint8."""
+    kp = np.asarray(db.read_keypoints(image_id), dtype=np.float32)
+    desc = np.asarray(db.read_descriptors(image_id).data)
+    if len(kp) == 0:
+        return np.zeros((0, 2), np.float32), np.zeros(0, np.float32), np.zeros((0, 128), np.uint8)
+    if kp.shape[1] >= 6:  # affine shape a11 a12 a21 a22: scale = sqrt(|det|)
+        scale = np.sqrt(np.abs(kp[:, 2] * kp[:, 5] - kp[:, 3] * kp[:, 4]))
+    elif kp.shape[1] >= 3:
+        scale = kp[:, 2]
+    else:
+        scale = np.ones(len(kp), np.float32)
+    return kp[:, :2].copy(), scale.astype(np.float32), desc.astype(np.uint8, copy=False)
+
+
+def read_cameras(db_path: Path) -> dict[str, dict]:
+    """name -> {'model', 'width', 'height', 'params', 'K'} from the database."""
+    out = {}
+    with open_database(db_path) as db:
+        cams = {c.camera_id: c for c in db.read_all_cameras()}
+        for im in db.read_all_images():
+            cam = cams[im.camera_id]
+            out[im.name] = {
+                "model": cam.model.name, "width": cam.width, "height": cam.height,
+                "params": np.asarray(cam.params).tolist(), "K": np.asarray(cam.calibration_matrix()),
+                "camera_id": im.camera_id,
+            }
+    return out
+
+
+def match_pairs(db_path: Path, pairs_path: Path, conf: MatchConfig) -> None:
+    """COLMAP's SIFT matching and geometric verification of the pairs in a file.
+
+    Pairs already matched in the database are skipped by COLMAP, so this resumes.
+    """
+    mopts = pycolmap.FeatureMatchingOptions()
+    mopts.num_threads = conf.num_threads
+    mopts.sift.max_ratio = conf.max_ratio
+    mopts.sift.max_distance = conf.max_distance
+    mopts.sift.cross_check = conf.cross_check
+    vopts = pycolmap.TwoViewGeometryOptions()
+    vopts.min_num_inliers = conf.min_num_inliers
+    pycolmap.match_image_pairs(
+        str(db_path), matching_options=mopts,
+        pairing_options=pycolmap.ImportedPairingOptions(match_list_path=str(pairs_path)),
+        verification_options=vopts, device=pycolmap.Device.cpu,
+    )
+
+
+def matched_pairs(db_path: Path) -> tuple[set[tuple[int, int]], dict[tuple[int, int], int]]:
+    """Image-id pairs that have raw matches, and verified inliers per pair."""
+    with open_database(db_path) as db:
+        pair_ids, _ = db.read_all_matches() if hasattr(db, "read_all_matches") else ([], None)
+        ids, num_inliers = db.read_two_view_geometry_num_inliers()
+    matched = {tuple(sorted(pycolmap.pair_id_to_image_pair(int(p)))) for p in pair_ids}
+    inliers = {tuple(sorted(pycolmap.pair_id_to_image_pair(int(p)))): int(n) for p, n in zip(ids, num_inliers)}
+    return matched, inliers
+
+
+def incremental_mapping(
+    db_path: Path, image_dir: Path, out_dir: Path, conf: MapConfig, seed: int,
+    on_next_image: Callable[[], None] | None = None,
+) -> dict[int, pycolmap.Reconstruction]:
+    opts = pycolmap.IncrementalPipelineOptions()
+    opts.min_model_size = conf.min_model_size
+    opts.num_threads = conf.num_threads
+    opts.random_seed = seed
+    opts.mapper.random_seed = seed
+    opts.triangulation.random_seed = seed
+    return pycolmap.incremental_mapping(
+        str(db_path), str(image_dir), str(out_dir), options=opts,
+        next_image_callback=on_next_image,
+    )
+
+
+def global_mapping(db_path: Path, image_dir: Path, out_dir: Path, conf: MapConfig, seed: int) -> dict:
+    opts = pycolmap.GlobalPipelineOptions()
+    with contextlib.suppress(AttributeError):
+        opts.num_threads = conf.num_threads
+    with contextlib.suppress(AttributeError):
+        opts.random_seed = seed
+    return pycolmap.global_mapping(str(db_path), str(image_dir), str(out_dir), options=opts)
+
+
+def read_model(path: Path) -> pycolmap.Reconstruction:
+    return pycolmap.Reconstruction(str(path))
+
+
+def cameras_by_image(db_path: Path) -> dict[str, pycolmap.Camera]:
+    """name -> the pycolmap.Camera (intrinsics as imported: EXIF focal or COLMAP's prior)."""
+    with open_database(db_path) as db:
+        cams = {c.camera_id: c for c in db.read_all_cameras()}
+        return {im.name: cams[im.camera_id] for im in db.read_all_images()}
+
+
+def image_to_normalized(camera: pycolmap.Camera, xy_colmap: np.ndarray) -> np.ndarray:
+    """(N, 2) pixels in COLMAP's convention -> (N, 2) normalized camera coordinates (undistorted)."""
+    if len(xy_colmap) == 0:
+        return np.zeros((0, 2))
+    return np.asarray(camera.cam_from_img(np.asarray(xy_colmap, dtype=np.float64)), dtype=np.float64)[:, :2]
+
+
+def mean_focal_px(camera: pycolmap.Camera) -> float:
+    return float(np.mean([camera.focal_length_x, camera.focal_length_y]))

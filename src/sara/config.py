@@ -1,0 +1,204 @@
+"""Configuration: one frozen dataclass per stage, nested in `PipelineConfig`.
+
+The CLI takes a preset name plus `stage.field=value` overrides; the resolved configuration is
+written to `run.json` in the output folder. Unknown keys are errors that list the valid ones.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import types
+import typing
+from dataclasses import dataclass, field
+from typing import Any
+
+
+@dataclass(frozen=True, kw_only=True)
+class ImagesConfig:
+    recursive: bool = False  # look for images in sub-folders too (names keep the sub-path)
+
+
+@dataclass(frozen=True, kw_only=True)
+class ExtractConfig:
+    """SIFT with COLMAP's defaults (RootSIFT descriptors)."""
+
+    max_num_features: int = 8192
+    max_image_size: int = 3200  # px; larger images are downscaled for extraction, keypoints mapped back
+    camera_model: str = "SIMPLE_RADIAL"
+    # auto: one shared camera when all images have the same size (and EXIF focal), else one per image
+    camera_mode: str = "auto"  # auto | single | per_image | per_folder
+    camera_params: str = ""  # known intrinsics, e.g. "fx,fy,cx,cy" for PINHOLE; empty = EXIF or prior
+    default_focal_length_factor: float = 1.2  # COLMAP's prior: focal = factor * max(width, height)
+    num_threads: int = -1
+
+
+@dataclass(frozen=True, kw_only=True)
+class RetrievalConfig:
+    """Global descriptors and the cosine kNN that proposes candidate pairs."""
+
+    descriptor: str = "vlad"  # vlad | dinov2 (needs local weights)
+    num_neighbors: int = 20  # k: nearest neighbours kept per image (the union is symmetric)
+    codebook_size: int = 64  # VLAD visual words, learned from the collection itself
+    features_per_image: int = 1000  # RootSIFT descriptors per image used for VLAD (largest scale first)
+    weights: str = ""  # local weights file for learned descriptors
+
+
+@dataclass(frozen=True, kw_only=True)
+class ScoreConfig:
+    """The pre-matching scorer: a cheap two-view geometry per candidate pair."""
+
+    num_keypoints: int = 1024  # M: keypoints per image (largest scale first) used for mutual NN
+    num_matches: int = 50  # b: best mutual nearest neighbours kept per pair
+    ransac_iterations: int = 32
+    ransac_max_error_px: float = 2.0  # Sampson error threshold
+    alpha: float = 1.0  # exponent of the overlap in w
+    beta: float = 0.5  # exponent of the saturated parallax in w
+    parallax_saturation_deg: float = 10.0  # g(P) = min(P, sat) / sat
+    min_overlap: float = 0.005  # tau_O
+    min_parallax_deg: float = 0.5  # tau_P
+    min_inliers: int = 12
+
+
+@dataclass(frozen=True, kw_only=True)
+class PairsConfig:
+    """Which pair source feeds matching, and the options of the baseline sources."""
+
+    method: str = "sara"  # sara | exhaustive | sequential | vocabtree | retrieval | <path to pairs.txt>
+    sequential_overlap: int = 10
+    sequential_quadratic: bool = False
+    sequential_loop_detection: bool = False  # add retrieval neighbours (vlad) every loop_period images
+    sequential_loop_period: int = 10
+    sequential_loop_neighbors: int = 5
+    vocab_tree_path: str = ""  # a saved pycolmap visual index; built from this collection when empty
+    vocab_num_images: int = 30  # top-k of the vocabulary tree retrieval
+    vocab_num_words: int = 4096
+
+
+@dataclass(frozen=True, kw_only=True)
+class MatchConfig:
+    """Full matching (COLMAP's SIFT matcher) and geometric verification of the selected pairs."""
+
+    max_ratio: float = 0.8
+    max_distance: float = 0.7
+    cross_check: bool = True
+    min_num_inliers: int = 15
+    num_threads: int = -1
+    chunk_size: int = 128  # pairs per matcher call: progress granularity and resume points
+
+
+@dataclass(frozen=True, kw_only=True)
+class MapConfig:
+    mapper: str = "incremental"  # incremental | global
+    min_model_size: int = 3
+    num_threads: int = -1
+
+
+def _graph_config_factory() -> Any:
+    from .graph import GraphConfig
+
+    return GraphConfig()
+
+
+@dataclass(frozen=True, kw_only=True)
+class PipelineConfig:
+    images: ImagesConfig = field(default_factory=ImagesConfig)
+    extract: ExtractConfig = field(default_factory=ExtractConfig)
+    pairs: PairsConfig = field(default_factory=PairsConfig)
+    retrieval: RetrievalConfig = field(default_factory=RetrievalConfig)
+    score: ScoreConfig = field(default_factory=ScoreConfig)
+    graph: Any = field(default_factory=_graph_config_factory)
+    match: MatchConfig = field(default_factory=MatchConfig)
+    map: MapConfig = field(default_factory=MapConfig)
+    seed: int = 0
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+
+PRESETS: dict[str, dict[str, Any]] = {
+    "sift-offline": {},
+    # Faster preview on large collections: fewer SIFT features, smaller images.
+    "sift-fast": {"extract.max_num_features": 4096, "extract.max_image_size": 1600},
+}
+
+
+def _parse_value(raw: str, typ: Any, key: str) -> Any:
+    if isinstance(typ, str):
+        typ = {"int": int, "float": float, "bool": bool, "str": str}.get(typ, str)
+    origin = typing.get_origin(typ)
+    if origin in (typing.Union, types.UnionType):
+        typ = next(t for t in typing.get_args(typ) if t is not type(None))
+    try:
+        if typ is bool:
+            low = raw.strip().lower()
+            if low in ("1", "true", "yes", "on"):
+                return True
+            if low in ("0", "false", "no", "off"):
+                return False
+            raise ValueError(raw)
+        if typ in (int, float, str):
+            return typ(raw)
+    except ValueError:
+        raise ValueError(f"bad value for {key}: {raw!r} is not a {typ.__name__}") from None
+    return raw
+
+
+def apply_overrides(conf: Any, overrides: dict[str, Any], prefix: str = "") -> Any:
+    """Return a copy of a (nested) config dataclass with `a.b=value` overrides applied.
+
+    Values may be strings (from the command line; parsed by the field's type) or typed values.
+    """
+    fields = {f.name: f for f in dataclasses.fields(conf)}
+    nested: dict[str, dict[str, Any]] = {}
+    direct: dict[str, Any] = {}
+    for key, value in overrides.items():
+        head, _, rest = key.partition(".")
+        if head not in fields:
+            valid = ", ".join(prefix + n for n in fields)
+            raise ValueError(f"unknown option {prefix + key!r}; valid options here: {valid}")
+        current = getattr(conf, head)
+        if rest:
+            if not dataclasses.is_dataclass(current):
+                raise ValueError(f"option {prefix + head!r} has no sub-options")
+            nested.setdefault(head, {})[rest] = value
+        elif dataclasses.is_dataclass(current):
+            valid = ", ".join(f"{prefix}{head}.{f.name}" for f in dataclasses.fields(current))
+            raise ValueError(f"{prefix + head!r} is a group of options: set one of {valid}")
+        else:
+            direct[head] = _parse_value(value, fields[head].type, prefix + key) if isinstance(value, str) else value
+    for head, sub in nested.items():
+        direct[head] = apply_overrides(getattr(conf, head), sub, prefix=f"{prefix}{head}.")
+    return dataclasses.replace(conf, **direct)
+
+
+def parse_override_args(args: list[str]) -> dict[str, str]:
+    """`['a.b=1', 'c=x']` -> {'a.b': '1', 'c': 'x'}."""
+    out = {}
+    for arg in args:
+        key, sep, value = arg.partition("=")
+        if not sep or not key:
+            raise ValueError(f"bad option {arg!r}: write it as key=value, e.g. retrieval.num_neighbors=20")
+        out[key.strip()] = value.strip()
+    return out
+
+
+def make_config(preset: str = "sift-offline", overrides: dict[str, Any] | None = None) -> PipelineConfig:
+    if preset not in PRESETS:
+        raise ValueError(f"unknown preset {preset!r}; choose one of: {', '.join(PRESETS)}")
+    conf = apply_overrides(PipelineConfig(), dict(PRESETS[preset]))
+    return apply_overrides(conf, overrides or {})
+
+
+def config_from_dict(data: dict[str, Any]) -> PipelineConfig:
+    """Rebuild a PipelineConfig from `to_dict()` output (e.g. run.json)."""
+    flat: dict[str, Any] = {}
+
+    def walk(d: dict[str, Any], prefix: str) -> None:
+        for k, v in d.items():
+            if isinstance(v, dict):
+                walk(v, f"{prefix}{k}.")
+            else:
+                flat[prefix + k] = v
+
+    walk(data, "")
+    return apply_overrides(PipelineConfig(), flat)

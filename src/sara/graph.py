@@ -1,0 +1,612 @@
+"""Pair selection on the candidate graph: a maximum spanning forest plus budgeted augmentation.
+
+Images are nodes and scored candidate pairs are edges. Each candidate has a weight
+``w = O^a * g(P)^b`` (overlap ``O``, a function of the parallax ``P``), computed by the
+pre-matching scorer. Pairs are chosen in four stages, each under its own budget:
+
+1. ``tree``: a maximum spanning forest of the accepted candidates (Kruskal). It keeps every
+   connected component of the accepted graph connected with the strongest pairs available.
+2. ``loop``: multi-scale loop consolidation. A non-tree edge ``(i, j)`` closes a cycle of
+   ``L + 1`` edges, where ``L`` is the number of tree edges between ``i`` and ``j``. Closing
+   cycles of several lengths constrains local structure (short loops) and drift along the
+   tree (long loops).
+3. ``anchor``: long-baseline anchors, the pairs with the best ``parallax * w``, spread so that
+   no view receives more than ``anchor_max_per_view`` of them.
+4. ``weak``: weak-view reinforcement: views that are barely attached to the selected graph
+   get their best remaining candidates.
+
+The core works on arrays: ``num_images`` and ``edges: (E, 2) int64`` with ``i < j``, unique.
+Rejected candidates (``accepted == False``) are never selected. Everything is deterministic:
+ties are broken by edge index, then by image index.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import breadth_first_order
+from scipy.sparse.csgraph import connected_components as _scipy_components
+
+logger = logging.getLogger(__name__)
+
+ROLES = ("tree", "loop", "anchor", "weak", "unselected", "rejected")
+"""Every role a candidate edge can have in a :class:`Selection`, selected ones first."""
+
+SELECTED_ROLES = ("tree", "loop", "anchor", "weak")
+
+
+@dataclass(frozen=True, kw_only=True)
+class GraphConfig:
+    """Budgets and thresholds of the pair-graph stage.
+
+    Budgets are ``ceil(ratio * num_images)`` pairs per augmentation; a ratio of 0 or a
+    ``use_*`` flag set to False disables that augmentation (for ablations).
+    With the defaults the selection has about ``(N - 1) + 0.9 N = 1.9 N`` pairs, a mean
+    degree near 4: the tree gives connectivity, the rest gives redundancy.
+    """
+
+    use_loops: bool = True
+    """Run multi-scale loop consolidation."""
+    use_anchors: bool = True
+    """Add long-baseline anchors."""
+    use_weak: bool = True
+    """Reinforce weak views."""
+
+    loop_budget_ratio: float = 0.5
+    """Loop-closing pairs per image (pairs / image). Half a pair per image closes a loop
+    for roughly every other tree edge, the main defence against drift."""
+    anchor_budget_ratio: float = 0.15
+    """Long-baseline anchor pairs per image (pairs / image). Few: they are the pairs with
+    the least overlap among the useful ones, kept for triangulation angle."""
+    weak_budget_ratio: float = 0.25
+    """Weak-view pairs per image (pairs / image). Enough for every leaf of a tree
+    (about a quarter of the views in a typical capture) to get a second pair."""
+
+    loop_scale_fractions: tuple[float, float, float] = (1 / 3, 1 / 3, 1 / 3)
+    """Shares of the loop budget for short, medium and long loops (unitless, normalised
+    to sum 1). Equal shares: no scale of drift is known in advance to dominate."""
+    loop_short_frac: float = 0.1
+    """Short loops have tree path length ``L <= s1 = max(loop_min_short_len,
+    ceil(loop_short_frac * D))``, ``D`` the forest's diameter (tree edges)."""
+    loop_long_frac: float = 0.3
+    """Long loops have ``L > s2 = max(s1 + 1, ceil(loop_long_frac * D))`` (tree edges).
+    The loop score's gain ``gamma(L) = min(1, log(1 + L) / log(1 + s2))`` saturates at
+    ``s2``: long loops are ranked by weight alone, shorter ones are discounted."""
+    loop_min_short_len: int = 3
+    """Smallest ``s1`` (tree edges): triangles and quadrilaterals always count as short."""
+
+    anchor_max_per_view: int = 1
+    """Most anchors touching one view (pairs). One makes the anchors a matching, so they
+    spread over ``2 * budget`` distinct views instead of piling onto a few wide views."""
+
+    weak_degree: int = 1
+    """A view whose degree in the selected graph is at most this (pairs) is weak: a
+    leaf of the tree hangs on one pair, and one bad match detaches it."""
+    weak_quantile: float = 0.2
+    """A view whose median accepted candidate weight is strictly below this quantile
+    (0-1) of all views' medians is weak too; 0 disables this criterion."""
+    weak_per_view: int = 1
+    """Most pairs added per weak view (pairs)."""
+
+    def __post_init__(self) -> None:
+        for name in ("loop_budget_ratio", "anchor_budget_ratio", "weak_budget_ratio"):
+            if not getattr(self, name) >= 0:
+                raise ValueError(f"GraphConfig.{name} must be >= 0, got {getattr(self, name)}")
+        fractions = np.asarray(self.loop_scale_fractions, dtype=np.float64)
+        if fractions.shape != (3,) or np.any(fractions < 0) or not fractions.sum() > 0:
+            raise ValueError(
+                "GraphConfig.loop_scale_fractions must be three non-negative numbers "
+                f"with a positive sum, got {self.loop_scale_fractions}"
+            )
+        if not 0 <= self.loop_short_frac <= self.loop_long_frac:
+            raise ValueError("GraphConfig needs 0 <= loop_short_frac <= loop_long_frac")
+        if self.loop_min_short_len < 2:
+            raise ValueError("GraphConfig.loop_min_short_len must be >= 2")
+        if self.anchor_max_per_view < 1 or self.weak_per_view < 1:
+            raise ValueError("GraphConfig.anchor_max_per_view and weak_per_view must be >= 1")
+        if self.weak_degree < 0 or not 0 <= self.weak_quantile <= 1:
+            raise ValueError("GraphConfig needs weak_degree >= 0 and 0 <= weak_quantile <= 1")
+
+    def budgets(self, num_images: int) -> dict[str, int]:
+        """Pairs each augmentation may add for ``num_images`` images (0 when disabled)."""
+        ratios = {
+            "loop": self.loop_budget_ratio if self.use_loops else 0.0,
+            "anchor": self.anchor_budget_ratio if self.use_anchors else 0.0,
+            "weak": self.weak_budget_ratio if self.use_weak else 0.0,
+        }
+        # The small slack keeps e.g. 0.15 * 20 = 3.0000000000000004 from becoming 4.
+        return {k: max(0, math.ceil(r * num_images - 1e-9)) for k, r in ratios.items()}
+
+
+# ----------------------------------------------------------------------------------------
+# Input checks
+# ----------------------------------------------------------------------------------------
+
+
+def _check_graph(num_images: int, edges: np.ndarray) -> np.ndarray:
+    """Validate ``edges`` against ``num_images``; return them as (E, 2) int64."""
+    if int(num_images) != num_images or num_images < 0:
+        raise ValueError(f"num_images must be a non-negative integer, got {num_images}")
+    edges = np.asarray(edges)
+    if edges.size == 0:
+        return np.zeros((0, 2), dtype=np.int64)
+    if edges.ndim != 2 or edges.shape[1] != 2 or not np.issubdtype(edges.dtype, np.integer):
+        raise ValueError(f"edges must be an (E, 2) integer array, got {edges.shape} {edges.dtype}")
+    edges = edges.astype(np.int64)
+    if edges.min() < 0 or edges.max() >= num_images:
+        raise ValueError(f"edges hold image indices outside [0, {num_images})")
+    if np.any(edges[:, 0] >= edges[:, 1]):
+        bad = edges[np.flatnonzero(edges[:, 0] >= edges[:, 1])[0]]
+        raise ValueError(
+            f"edges must have i < j (no self pairs, canonical order); got {bad.tolist()}"
+        )
+    keys = edges[:, 0] * num_images + edges[:, 1]
+    if np.unique(keys).size != keys.size:
+        raise ValueError("edges contain duplicate pairs")
+    return edges
+
+
+def _check_per_edge(name: str, values: np.ndarray, num_edges: int) -> np.ndarray:
+    values = np.asarray(values)
+    if values.shape != (num_edges,):
+        raise ValueError(f"{name} must have shape ({num_edges},), got {values.shape}")
+    return values
+
+
+# ----------------------------------------------------------------------------------------
+# Spanning forest and components
+# ----------------------------------------------------------------------------------------
+
+
+def maximum_spanning_forest(num_images: int, edges: np.ndarray, weight: np.ndarray) -> np.ndarray:
+    """Kruskal's maximum spanning forest.
+
+    Args:
+        num_images: number of nodes N.
+        edges: (E, 2) int64, ``i < j``, unique.
+        weight: (E,) float64, finite.
+    Returns:
+        (N - C,) int64 indices into ``edges`` of the forest's edges, ascending; C is the
+        number of connected components (isolated images included). Edges are taken by
+        weight descending, equal weights by lower edge index first.
+    """
+    edges = _check_graph(num_images, edges)
+    weight = _check_per_edge("weight", weight, len(edges)).astype(np.float64)
+    if not np.all(np.isfinite(weight)):
+        raise ValueError("weight must be finite")
+    order = np.lexsort((np.arange(len(edges)), -weight))
+    parent = list(range(num_images))
+    size = [1] * num_images
+
+    def find(x: int) -> int:
+        while parent[x] != x:
+            parent[x] = parent[parent[x]]  # path halving
+            x = parent[x]
+        return x
+
+    chosen: list[int] = []
+    ends = edges.tolist()
+    for e in order.tolist():
+        ri, rj = find(ends[e][0]), find(ends[e][1])
+        if ri == rj:
+            continue
+        if size[ri] < size[rj]:
+            ri, rj = rj, ri
+        parent[rj] = ri
+        size[ri] += size[rj]
+        chosen.append(e)
+        if len(chosen) == num_images - 1:
+            break
+    return np.sort(np.asarray(chosen, dtype=np.int64))
+
+
+def _adjacency(num_nodes: int, edges: np.ndarray) -> coo_matrix:
+    data = np.ones(len(edges), dtype=np.int8)
+    return coo_matrix((data, (edges[:, 0], edges[:, 1])), shape=(num_nodes, num_nodes))
+
+
+def connected_components(num_images: int, edges: np.ndarray) -> np.ndarray:
+    """Connected-component label per image.
+
+    Args:
+        num_images: number of images N; an image without edges is its own component.
+        edges: (E, 2) int64 image pairs.
+    Returns:
+        (N,) int64 labels ``0..C-1``: component 0 is the largest, equal sizes are ordered
+        by their smallest image index.
+    """
+    edges = _check_graph(num_images, edges)
+    if num_images == 0:
+        return np.zeros(0, dtype=np.int64)
+    _, raw = _scipy_components(_adjacency(num_images, edges), directed=False)
+    sizes = np.bincount(raw)
+    first = np.full(len(sizes), num_images, dtype=np.int64)
+    np.minimum.at(first, raw, np.arange(num_images))
+    order = np.lexsort((first, -sizes))
+    relabel = np.empty(len(sizes), dtype=np.int64)
+    relabel[order] = np.arange(len(sizes))
+    return relabel[raw]
+
+
+# ----------------------------------------------------------------------------------------
+# Tree paths
+# ----------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, eq=False)
+class RootedForest:
+    """A spanning forest rooted at each tree's smallest image, with binary-lifting tables.
+
+    Attributes:
+        parent: (N,) int64 parent image; a root is its own parent.
+        depth: (N,) int64 tree edges from the root.
+        tree_id: (N,) int64 tree label (as :func:`connected_components`).
+        ancestors: (K, N) int64, ``ancestors[k, v]`` is the ``2**k``-th ancestor of ``v``
+            (the root when the tree is shallower).
+    """
+
+    parent: np.ndarray
+    depth: np.ndarray
+    tree_id: np.ndarray
+    ancestors: np.ndarray
+
+    @classmethod
+    def from_edges(cls, num_images: int, tree_edges: np.ndarray) -> RootedForest:
+        """Root the forest given by ``tree_edges: (N - C, 2) int64``; ValueError on cycles."""
+        tree_edges = _check_graph(num_images, tree_edges)
+        tree_id = connected_components(num_images, tree_edges)
+        num_trees = int(tree_id.max()) + 1 if num_images else 0
+        if len(tree_edges) != num_images - num_trees:
+            raise ValueError("tree_edges contain a cycle: they are not a forest")
+        roots = np.full(num_trees, num_images, dtype=np.int64)
+        np.minimum.at(roots, tree_id, np.arange(num_images))
+        # One BFS from a virtual node N linked to every root roots all trees at once.
+        super_root = np.full(num_trees, num_images, dtype=np.int64)
+        linked = np.concatenate([tree_edges, np.stack([roots, super_root], axis=1)])
+        _, pred = breadth_first_order(
+            _adjacency(num_images + 1, linked), num_images, directed=False, return_predecessors=True
+        )
+        index = np.arange(num_images)
+        parent = pred[:num_images].astype(np.int64)
+        parent[parent == num_images] = index[parent == num_images]
+        # Pointer jumping: after k rounds `jump` is the 2**k-th ancestor, `dist` the edges to it.
+        levels = max(1, int(num_images - 1).bit_length())
+        dist = (parent != index).astype(np.int64)
+        jump = parent
+        table = []
+        for _ in range(levels):
+            table.append(jump)
+            dist, jump = dist + dist[jump], jump[jump]
+        return cls(parent=parent, depth=dist, tree_id=tree_id, ancestors=np.stack(table))
+
+    def lca(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """(Q,) int64 lowest common ancestors of images ``u, v: (Q,)`` in the same tree."""
+        u = np.asarray(u, dtype=np.int64).copy()
+        v = np.asarray(v, dtype=np.int64).copy()
+        swap = self.depth[u] < self.depth[v]
+        u[swap], v[swap] = v[swap], u[swap]
+        diff = self.depth[u] - self.depth[v]
+        for k, up in enumerate(self.ancestors):
+            bit = ((diff >> k) & 1).astype(bool)
+            u[bit] = up[u[bit]]
+        for up in self.ancestors[::-1]:
+            differ = up[u] != up[v]
+            u[differ], v[differ] = up[u[differ]], up[v[differ]]
+        return np.where(u == v, u, self.parent[u])
+
+    def path_lengths(self, pairs: np.ndarray) -> np.ndarray:
+        """Tree edges between the images of each pair.
+
+        Args:
+            pairs: (Q, 2) int image indices.
+        Returns:
+            (Q,) float64; ``inf`` where the two images lie in different trees. A non-tree
+            edge with path length L closes a cycle of L + 1 edges.
+        """
+        pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
+        out = np.full(len(pairs), np.inf)
+        same = self.tree_id[pairs[:, 0]] == self.tree_id[pairs[:, 1]]
+        u, v = pairs[same, 0], pairs[same, 1]
+        out[same] = self.depth[u] + self.depth[v] - 2 * self.depth[self.lca(u, v)]
+        return out
+
+    def diameter(self) -> int:
+        """Longest tree path in the forest (tree edges); 0 without edges."""
+        num_images = len(self.parent)
+        if num_images == 0:
+            return 0
+        # The deepest image of a tree is one end of a longest path of that tree.
+        order = np.lexsort((np.arange(num_images), -self.depth, self.tree_id))
+        first = np.ones(num_images, dtype=bool)
+        first[1:] = self.tree_id[order[1:]] != self.tree_id[order[:-1]]
+        deepest = np.empty(self.tree_id.max() + 1, dtype=np.int64)
+        deepest[self.tree_id[order[first]]] = order[first]
+        ends = np.stack([deepest[self.tree_id], np.arange(num_images)], axis=1)
+        return int(self.path_lengths(ends).max())
+
+
+def tree_path_lengths(num_images: int, tree_edges: np.ndarray, pairs: np.ndarray) -> np.ndarray:
+    """(Q,) float64 tree edges between the images of each of ``pairs: (Q, 2)``; inf across trees."""
+    return RootedForest.from_edges(num_images, tree_edges).path_lengths(pairs)
+
+
+# ----------------------------------------------------------------------------------------
+# Augmentation
+# ----------------------------------------------------------------------------------------
+
+
+def loop_length_thresholds(diameter: int, conf: GraphConfig) -> tuple[int, int]:
+    """``(s1, s2)`` in tree edges: short loops have L <= s1, long ones L > s2."""
+    s1 = max(conf.loop_min_short_len, math.ceil(conf.loop_short_frac * diameter))
+    s2 = max(s1 + 1, math.ceil(conf.loop_long_frac * diameter))
+    return s1, s2
+
+
+def loop_gain(path_length: np.ndarray, long_threshold: int) -> np.ndarray:
+    """``gamma(L) = min(1, log(1 + L) / log(1 + s2))``: grows with L, 1 from ``L = s2`` on."""
+    gain = np.log1p(np.asarray(path_length, dtype=np.float64)) / math.log1p(long_threshold)
+    return np.minimum(1.0, gain)
+
+
+def _split_budget(budget: int, fractions: tuple[float, ...]) -> np.ndarray:
+    """Integer shares of ``budget`` proportional to ``fractions`` (largest remainder)."""
+    raw = budget * np.asarray(fractions, dtype=np.float64) / np.sum(fractions)
+    shares = np.floor(raw).astype(np.int64)
+    by_remainder = np.lexsort((np.arange(len(raw)), -(raw - shares)))
+    shares[by_remainder[: budget - shares.sum()]] += 1
+    return shares
+
+
+def _ranked(candidates: np.ndarray, score: np.ndarray) -> np.ndarray:
+    """Positions into ``candidates`` by score descending, then edge index ascending."""
+    return np.lexsort((candidates, -score))
+
+
+def _add_loops(
+    role: np.ndarray, edges: np.ndarray, weight: np.ndarray, forest: RootedForest,
+    budget: int, conf: GraphConfig,
+) -> None:
+    """Mark up to ``budget`` unselected accepted edges "loop": best ``w * gamma(L)`` per scale."""
+    candidates = np.flatnonzero(role == "unselected")
+    length = forest.path_lengths(edges[candidates])
+    candidates, length = candidates[np.isfinite(length)], length[np.isfinite(length)]
+    s1, s2 = loop_length_thresholds(forest.diameter(), conf)
+    score = weight[candidates] * loop_gain(length, s2)
+    scale = np.where(length <= s1, 0, np.where(length <= s2, 1, 2))
+    order = _ranked(candidates, score)
+    taken = np.zeros(len(candidates), dtype=bool)
+    for s, share in enumerate(_split_budget(budget, conf.loop_scale_fractions)):
+        taken[order[scale[order] == s][:share]] = True
+    # What a scale could not use goes to the best remaining loops of any scale.
+    leftover = budget - int(taken.sum())
+    taken[order[~taken[order]][:leftover]] = True
+    role[candidates[taken]] = "loop"
+    logger.debug(
+        "loops: s1=%d s2=%d, %d short, %d medium, %d long",
+        s1, s2, *(int(np.sum(taken & (scale == s))) for s in range(3)),
+    )
+
+
+def _add_anchors(
+    role: np.ndarray, edges: np.ndarray, weight: np.ndarray, parallax_deg: np.ndarray,
+    num_images: int, budget: int, max_per_view: int,
+) -> None:
+    """Mark the best ``parallax * w`` unselected accepted edges as "anchor", capped per view."""
+    candidates = np.flatnonzero(role == "unselected")
+    score = parallax_deg[candidates] * weight[candidates]
+    candidates, score = candidates[score > 0], score[score > 0]
+    count = np.zeros(num_images, dtype=np.int64)
+    chosen: list[int] = []
+    for e in candidates[_ranked(candidates, score)].tolist():
+        if len(chosen) == budget:
+            break
+        i, j = edges[e]
+        if count[i] < max_per_view and count[j] < max_per_view:
+            count[i] += 1
+            count[j] += 1
+            chosen.append(e)
+    role[chosen] = "anchor"
+
+
+def _median_incident_weight(num_images: int, edges: np.ndarray, weight: np.ndarray) -> np.ndarray:
+    """(N,) float64 median weight of the edges at each image; NaN for images without edges."""
+    view = np.concatenate([edges[:, 0], edges[:, 1]])
+    w = np.concatenate([weight, weight])
+    order = np.lexsort((w, view))
+    view, w = view[order], w[order]
+    count = np.bincount(view, minlength=num_images)
+    start = np.concatenate([[0], np.cumsum(count)[:-1]])
+    has = count > 0
+    median = np.full(num_images, np.nan)
+    low = start[has] + (count[has] - 1) // 2
+    high = start[has] + count[has] // 2
+    median[has] = 0.5 * (w[low] + w[high])
+    return median
+
+
+def weak_views(
+    num_images: int, edges: np.ndarray, weight: np.ndarray, role: np.ndarray, conf: GraphConfig
+) -> np.ndarray:
+    """Weak images, weakest first (lowest degree, then lowest median weight, then index).
+
+    A view is weak when its degree in the selected graph is ``<= conf.weak_degree`` or its
+    median accepted candidate weight is below the ``conf.weak_quantile`` quantile of all
+    views' medians. Only views with at least one accepted candidate are considered.
+    """
+    selected = np.isin(role, SELECTED_ROLES)
+    degree = np.bincount(edges[selected].ravel(), minlength=num_images)
+    accepted = role != "rejected"
+    median = _median_incident_weight(num_images, edges[accepted], weight[accepted])
+    has = ~np.isnan(median)
+    weak = has & (degree <= conf.weak_degree)
+    if conf.weak_quantile > 0 and has.any():
+        weak |= has & (median < np.quantile(median[has], conf.weak_quantile))
+    views = np.flatnonzero(weak)
+    return views[np.lexsort((views, median[views], degree[views]))]
+
+
+def _add_weak(
+    role: np.ndarray, edges: np.ndarray, weight: np.ndarray, num_images: int,
+    budget: int, conf: GraphConfig,
+) -> None:
+    """Give each weak view up to ``conf.weak_per_view`` of its best unselected candidates."""
+    views = weak_views(num_images, edges, weight, role, conf)
+    candidates = np.flatnonzero(role == "unselected")
+    candidates = candidates[_ranked(candidates, weight[candidates])]
+    # Incident candidates of every view, best first (stable sort keeps the ranking).
+    ends = np.concatenate([edges[candidates, 0], edges[candidates, 1]])
+    incident = np.concatenate([candidates, candidates])
+    by_view = np.argsort(ends, kind="stable")
+    incident = incident[by_view]
+    stop = np.cumsum(np.bincount(ends, minlength=num_images))
+    start = stop - np.bincount(ends, minlength=num_images)
+    added = 0
+    for v in views.tolist():
+        own = 0
+        for e in incident[start[v]:stop[v]].tolist():
+            if added == budget or own == conf.weak_per_view:
+                break
+            if role[e] == "unselected":
+                role[e] = "weak"
+                own += 1
+                added += 1
+        if added == budget:
+            break
+
+
+# ----------------------------------------------------------------------------------------
+# Selection
+# ----------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, eq=False)
+class Selection:
+    """The selected pairs and the role of every candidate.
+
+    Attributes:
+        num_images: number of images N.
+        edges: (E, 2) int64 candidate pairs, as given.
+        edge_index: (K,) int64 indices into ``edges`` of the selected pairs, ascending.
+        role: (E,) str, one of :data:`ROLES` per candidate.
+        components: (N,) int64 component labels of the accepted candidate graph
+            (see :func:`connected_components`); the selected graph has the same components.
+        num_components: number of components of the accepted candidate graph.
+        budgets: pairs each augmentation was allowed to add ("loop", "anchor", "weak").
+    """
+
+    num_images: int
+    edges: np.ndarray
+    edge_index: np.ndarray
+    role: np.ndarray
+    components: np.ndarray
+    num_components: int
+    budgets: dict[str, int] = field(default_factory=dict)
+
+    @property
+    def selected_edges(self) -> np.ndarray:
+        """(K, 2) int64 selected image pairs."""
+        return self.edges[self.edge_index]
+
+    def stats(self) -> dict[str, Any]:
+        """JSON-serialisable summary: pairs per role, components, degrees of the selection."""
+        selected = self.selected_edges
+        degree = np.bincount(selected.ravel(), minlength=self.num_images)
+        selected_labels = connected_components(self.num_images, selected)
+        return {
+            "num_images": int(self.num_images),
+            "num_candidates": int(len(self.edges)),
+            "num_accepted": int(np.sum(self.role != "rejected")),
+            "num_selected": int(len(self.edge_index)),
+            "pairs_per_role": {r: int(np.sum(self.role == r)) for r in ROLES},
+            "budgets": {k: int(v) for k, v in self.budgets.items()},
+            "num_components_accepted": int(self.num_components),
+            "num_components_selected": int(selected_labels.max() + 1) if self.num_images else 0,
+            "degree_min": int(degree.min()) if self.num_images else 0,
+            "degree_median": float(np.median(degree)) if self.num_images else 0.0,
+            "degree_max": int(degree.max()) if self.num_images else 0,
+            "num_images_degree_0": int(np.sum(degree == 0)),
+        }
+
+
+def _warn_if_disconnected(components: np.ndarray) -> None:
+    sizes = np.bincount(components)
+    if len(sizes) <= 1:
+        return
+    shown = ", ".join(str(s) for s in sizes[:20]) + (", ..." if len(sizes) > 20 else "")
+    logger.warning(
+        "The accepted candidate graph has %d connected components (sizes: %s); "
+        "the selection spans each one separately and will reconstruct as separate models.",
+        len(sizes), shown,
+    )
+
+
+def select_pairs(
+    num_images: int,
+    edges: np.ndarray,
+    weight: np.ndarray,
+    parallax_deg: np.ndarray,
+    accepted: np.ndarray,
+    conf: GraphConfig | None = None,
+) -> Selection:
+    """Choose the pairs to match: spanning forest, then loops, anchors and weak views.
+
+    Args:
+        num_images: number of images N (>= 1).
+        edges: (E, 2) int64 candidate pairs, ``i < j``, unique.
+        weight: (E,) float64 pair weight ``w``; finite and >= 0 for accepted pairs.
+        parallax_deg: (E,) float64 parallax, degrees; finite for accepted pairs.
+        accepted: (E,) bool; rejected pairs are never selected.
+        conf: budgets and thresholds; defaults to ``GraphConfig()``.
+    Returns:
+        A :class:`Selection`; the same input always gives the same output.
+    """
+    conf = GraphConfig() if conf is None else conf
+    if num_images < 1:
+        raise ValueError(f"num_images must be >= 1, got {num_images}")
+    edges = _check_graph(num_images, edges)
+    weight = _check_per_edge("weight", weight, len(edges)).astype(np.float64)
+    parallax_deg = _check_per_edge("parallax_deg", parallax_deg, len(edges)).astype(np.float64)
+    accepted = _check_per_edge("accepted", accepted, len(edges)).astype(bool)
+    if not np.all(np.isfinite(weight[accepted])) or np.any(weight[accepted] < 0):
+        raise ValueError("weight must be finite and >= 0 for accepted pairs")
+    if not np.all(np.isfinite(parallax_deg[accepted])):
+        raise ValueError("parallax_deg must be finite for accepted pairs")
+
+    accepted_index = np.flatnonzero(accepted)
+    components = connected_components(num_images, edges[accepted_index])
+    _warn_if_disconnected(components)
+    role = np.where(accepted, "unselected", "rejected").astype(f"<U{max(map(len, ROLES))}")
+    forest_index = maximum_spanning_forest(
+        num_images, edges[accepted_index], weight[accepted_index]
+    )
+    tree = accepted_index[forest_index]
+    role[tree] = "tree"
+
+    budgets = conf.budgets(num_images)
+    if budgets["loop"] > 0:
+        forest = RootedForest.from_edges(num_images, edges[tree])
+        _add_loops(role, edges, weight, forest, budgets["loop"], conf)
+    if budgets["anchor"] > 0:
+        _add_anchors(
+            role, edges, weight, parallax_deg, num_images, budgets["anchor"],
+            conf.anchor_max_per_view,
+        )
+    if budgets["weak"] > 0:
+        _add_weak(role, edges, weight, num_images, budgets["weak"], conf)
+
+    selection = Selection(
+        num_images=int(num_images),
+        edges=edges,
+        edge_index=np.flatnonzero(np.isin(role, SELECTED_ROLES)).astype(np.int64),
+        role=role,
+        components=components,
+        num_components=int(components.max()) + 1,
+        budgets=budgets,
+    )
+    logger.info("Selected pairs: %s", selection.stats()["pairs_per_role"])
+    return selection

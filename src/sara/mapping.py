@@ -1,0 +1,80 @@
+"""Stage `map`: pycolmap's incremental (or global) mapper into `sparse/0`, `sparse/1`, ...
+
+Components are numbered by decreasing size, so `sparse/0` is always the largest model, the one
+that 3DGS, nerfstudio and COLMAP's GUI open by default.
+"""
+
+from __future__ import annotations
+
+import logging
+import shutil
+import time
+from pathlib import Path
+
+from tqdm import tqdm
+
+from . import colmap, state
+from .config import MapConfig
+
+logger = logging.getLogger(__name__)
+
+STAGE = "map"
+
+
+def run(conf: MapConfig, db_path: Path, images_root: Path, out_dir: Path, *, seed: int = 0,
+        upstream_key: str = "", progress: bool = True) -> dict:
+    """Map the matched database; returns component sizes and the time taken."""
+    out_dir = Path(out_dir)
+    sparse = out_dir / "sparse"
+    key = state_key(conf, seed, upstream_key)
+    if state.is_done(out_dir, STAGE, key) and sparse.exists():
+        logger.info("map: model up to date, skipping")
+        return state.done_info(out_dir, STAGE)
+    state.mark_started(out_dir, STAGE, key)
+    tmp = out_dir / ".sara" / "sparse.partial"
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    num_images = len(colmap.database_images(db_path))
+    colmap.set_seed(seed)
+    tic = time.perf_counter()
+    if conf.mapper == "incremental":
+        with tqdm(total=num_images, desc="map (incremental)", unit="img", disable=not progress) as bar:
+            recs = colmap.incremental_mapping(db_path, images_root, tmp, conf, seed, on_next_image=lambda: bar.update())
+    elif conf.mapper == "global":
+        recs = colmap.global_mapping(db_path, images_root, tmp, conf, seed)
+    else:
+        raise ValueError(f"unknown mapper {conf.mapper!r}; choose incremental or global")
+    elapsed = time.perf_counter() - tic
+    sizes = _renumber_by_size(tmp, recs)
+    if sparse.exists():
+        shutil.rmtree(sparse)
+    tmp.rename(sparse)
+    info = {"time_s": elapsed, "num_components": len(sizes), "component_sizes": sizes,
+            "num_registered": sizes[0] if sizes else 0, "num_images": num_images}
+    state.mark_done(out_dir, STAGE, key, info)
+    if not sizes:
+        logger.warning("map: no model could be built (too few verified matches)")
+    elif len(sizes) > 1:
+        logger.warning("map: the scene split into %d models of %s images", len(sizes), sizes)
+    return info
+
+
+def state_key(conf: MapConfig, seed: int, upstream_key: str) -> str:
+    from .io import fingerprint
+
+    return fingerprint({"conf": conf.__dict__, "seed": seed, "upstream": upstream_key})
+
+
+def _renumber_by_size(folder: Path, recs: dict) -> list[int]:
+    """Rewrite the numbered model folders so that 0 is the largest; returns registered counts."""
+    order = sorted(recs.items(), key=lambda kv: (-kv[1].num_reg_images(), kv[0]))
+    for sub in list(folder.iterdir()):
+        if sub.is_dir():
+            shutil.rmtree(sub)
+    sizes = []
+    for new_index, (_, rec) in enumerate(order):
+        dst = folder / str(new_index)
+        dst.mkdir()
+        rec.write(str(dst))
+        sizes.append(int(rec.num_reg_images()))
+    return sizes

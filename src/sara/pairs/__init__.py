@@ -1,0 +1,55 @@
+"""Pair sources: each turns a collection into a list of image pairs to match.
+
+Every source (SARA and the baselines) only produces pairs; matching, verification and mapping
+are the same code for all of them, so comparisons measure pair selection and nothing else.
+"""
+
+from __future__ import annotations
+
+import importlib
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from ..config import PipelineConfig
+from ..pairsfile import Pair
+
+
+@dataclass
+class PairContext:
+    names: list[str]  # the images of the run, sorted
+    images_root: Path
+    features_path: Path  # features.h5
+    db_path: Path  # COLMAP database with keypoints and cameras
+    out_dir: Path  # where a source may write its own files (scores.csv, global.h5, ...)
+    conf: PipelineConfig
+    progress: bool = True
+
+
+@dataclass
+class PairResult:
+    pairs: list[Pair]
+    info: dict[str, Any] = field(default_factory=dict)  # stats that go into run.json
+    timings_s: dict[str, float] = field(default_factory=dict)
+
+
+PairSource = Callable[[PairContext], PairResult]
+
+# name -> "module:function", imported on use so a source's dependencies load only when chosen
+SOURCES: dict[str, str] = {
+    "sara": "sara.pairs.sara_source:select",
+    "exhaustive": "sara.pairs.exhaustive:select",
+    "sequential": "sara.pairs.sequential:select",
+    "vocabtree": "sara.pairs.vocabtree:select",
+    "retrieval": "sara.pairs.retrieval_only:select",
+}
+
+
+def get_source(name: str) -> PairSource:
+    if name not in SOURCES:
+        raise ValueError(
+            f"unknown pair source {name!r}; choose one of {', '.join(SOURCES)} or give a pairs file path"
+        )
+    module, func = SOURCES[name].split(":")
+    return getattr(importlib.import_module(module), func)
