@@ -12,7 +12,7 @@ from .config import make_config
 from .pipeline import run
 from .synthetic import make_scene
 
-METHODS = ("exhaustive", "sequential")
+METHODS = ("sara", "exhaustive")
 ROWS = (
     ("images registered", lambda r: f"{r.metrics['num_registered']}/{r.metrics['num_images_gt']}"),
     ("models", lambda r: str(r.metrics["num_components"])),

@@ -533,12 +533,12 @@ def run(model_root: Path, gt_dir: Path, out_path: Path | None = None) -> dict:
     A missing ``model_root`` evaluates as a failed reconstruction.
     """
     model_dirs = find_model_dirs(Path(model_root))
-    logger.info(
+    logger.debug(
         "Evaluating %d component(s) under %s against %s", len(model_dirs), model_root, gt_dir
     )
     metrics = evaluate_models(model_dirs, Path(gt_dir))
     if out_path is not None:
         write_json_atomic(metrics, Path(out_path))
         logger.info("Wrote metrics to %s", out_path)
-    logger.info("Evaluation of %s:\n%s", model_root, format_table(metrics))
+    logger.debug("Evaluation of %s:\n%s", model_root, format_table(metrics))
     return metrics

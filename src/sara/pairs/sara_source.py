@@ -1,0 +1,104 @@
+"""The SARA pair source: retrieval -> pre-matching scores -> information-weighted spanning tree
+-> loop, anchor and weak-view augmentation.
+
+Beyond the paper: views whose every candidate was rejected for low parallax (near-duplicates,
+pure rotations) are not dropped. They carry no new geometry, but a user still wants them posed,
+so the best such pair by overlap "rescues" them, and likewise joins components of the selected
+graph that only low-parallax pairs connect. Views with no overlapping candidate at all (another
+scene) stay apart: the selected graph's components are reported and each maps to its own model.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+
+import numpy as np
+
+from .. import graph, retrieval, scoring
+from ..pairsfile import Pair
+from . import PairContext, PairResult
+
+logger = logging.getLogger(__name__)
+
+SCORES_NAME = "scores.csv"
+RESCUE_REASON = "low_parallax"
+
+
+def select(ctx: PairContext) -> PairResult:
+    conf = ctx.conf
+    timings: dict[str, float] = {}
+    tic = time.perf_counter()
+    global_path = retrieval.run(conf.retrieval, ctx.features_path, ctx.names, ctx.out_dir,
+                                progress=ctx.progress, seed=conf.seed)
+    names, desc = retrieval.read_global(global_path)
+    edges = retrieval.knn_pairs(desc, conf.retrieval.num_neighbors).astype(np.int64)
+    timings["retrieval"] = time.perf_counter() - tic
+
+    tic = time.perf_counter()
+    candidates: list[Pair] = [(names[i], names[j]) for i, j in edges]
+    scores = scoring.score_pairs(candidates, ctx.features_path, ctx.db_path, conf.score,
+                                 progress=ctx.progress, seed=conf.seed)
+    timings["scoring"] = time.perf_counter() - tic
+
+    tic = time.perf_counter()
+    selection = graph.select_pairs(len(names), edges, scores.weight, scores.parallax_deg, scores.accepted, conf.graph)
+    roles = list(selection.role)
+    rescued = rescue_low_parallax(len(names), edges, roles, scores)
+    timings["graph"] = time.perf_counter() - tic
+
+    scoring.write_scores_csv(ctx.out_dir / SCORES_NAME, scores, roles)
+    chosen = [candidates[e] for e, role in enumerate(roles) if role in graph.SELECTED_ROLES or role == "rescue"]
+    labels = graph.connected_components(len(names), _selected_edges(edges, roles))
+    info = {
+        "num_candidates": len(candidates),
+        "num_accepted": int(scores.accepted.sum()),
+        "rejected": _count(r for r in scores.reason if r),
+        "num_rescued": rescued,
+        "graph": selection.stats(),
+        "selected_components": _component_sizes(labels),
+    }
+    sizes = info["selected_components"]
+    if len(sizes) > 1:
+        logger.warning("the selected view graph has %d components of sizes %s: they share no reliable geometry "
+                       "and will map to separate models", len(sizes), sizes)
+    return PairResult(chosen, info, timings)
+
+
+def rescue_low_parallax(num_images: int, edges: np.ndarray, roles: list[str], scores: scoring.PairScores) -> int:
+    """Join components of the selected graph with pairs rejected only for low parallax.
+
+    A maximum spanning forest over the components, weighted by overlap; sets their role to
+    "rescue" in place and returns how many were added.
+    """
+    selected = _selected_edges(edges, roles)
+    labels = graph.connected_components(num_images, selected)
+    pool = np.array([e for e, r in enumerate(scores.reason) if r == RESCUE_REASON and roles[e] == "rejected"
+                     and labels[edges[e, 0]] != labels[edges[e, 1]]], dtype=np.int64)
+    if len(pool) == 0:
+        return 0
+    pool = pool[np.argsort(-scores.overlap[pool], kind="stable")]
+    comp_edges = np.sort(np.stack([labels[edges[pool, 0]], labels[edges[pool, 1]]], axis=1), axis=1)
+    _, first = np.unique(comp_edges, axis=0, return_index=True)  # the best pair per two components
+    first = np.sort(first)
+    pool, comp_edges = pool[first], comp_edges[first]
+    chosen = graph.maximum_spanning_forest(int(labels.max()) + 1, comp_edges, scores.overlap[pool])
+    for e in pool[chosen]:
+        roles[e] = "rescue"
+    return len(chosen)
+
+
+def _selected_edges(edges: np.ndarray, roles: list[str]) -> np.ndarray:
+    mask = np.array([r in graph.SELECTED_ROLES or r == "rescue" for r in roles], dtype=bool)
+    return edges[mask] if len(edges) else edges.reshape(0, 2)
+
+
+def _component_sizes(labels: np.ndarray) -> list[int]:
+    return sorted(np.bincount(labels).tolist(), reverse=True) if len(labels) else []
+
+
+def _count(items) -> dict[str, int]:
+    out: dict[str, int] = {}
+    for item in items:
+        out[item] = out.get(item, 0) + 1
+    return out
