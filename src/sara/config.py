@@ -16,6 +16,9 @@ from typing import Any
 @dataclass(frozen=True, kw_only=True)
 class ImagesConfig:
     recursive: bool = False  # look for images in sub-folders too (names keep the sub-path)
+    # EXIF orientation tags: "ignore" uses the stored pixels, as COLMAP, 3DGS and nerfstudio's COLMAP
+    # loaders do; "apply" writes upright copies to <out>/images_upright and reconstructs from those
+    exif_orientation: str = "ignore"
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -28,6 +28,7 @@ class ImageSet:
     names: list[str]
     sizes: dict[str, tuple[int, int]]
     skipped: dict[str, str] = field(default_factory=dict)
+    orientation: dict[str, int] = field(default_factory=dict)  # EXIF orientation, only where not 1
 
     def fingerprint_data(self) -> list[tuple[str, int, int]]:
         """What identifies the set for caches: names and file sizes in bytes and mtimes."""
@@ -59,25 +60,32 @@ def list_image_files(root: Path, *, recursive: bool = False) -> list[str]:
     return sorted(names)
 
 
-def check_image(path: Path) -> tuple[tuple[int, int] | None, str | None]:
-    """Decode an image fully. Returns ((width, height), None) or (None, reason)."""
+def check_image(path: Path) -> tuple[tuple[int, int] | None, str | None, int]:
+    """Decode an image fully (JPEGs at reduced scale, which still reads every byte).
+
+    Returns ((width, height) of the stored pixels, None, EXIF orientation) or (None, reason, 1).
+    """
     from PIL import Image, UnidentifiedImageError
 
+    orientation = 1
     try:
         if path.stat().st_size == 0:
-            return None, "empty file (0 bytes)"
+            return None, "empty file (0 bytes)", 1
         with Image.open(path) as im:
-            im.load()
             size = im.size
+            if im.format == "JPEG":
+                im.draft("RGB", (max(1, size[0] // 8), max(1, size[1] // 8)))
+            orientation = int(im.getexif().get(0x0112, 1) or 1)
+            im.load()
     except UnidentifiedImageError:
-        return None, "not a readable image (unknown or corrupt format)"
-    except (OSError, ValueError, SyntaxError) as exc:
-        return None, f"corrupt or truncated image ({exc})"
+        return None, "not a readable image (unknown or corrupt format)", 1
     except Image.DecompressionBombError as exc:
-        return None, f"image too large to decode safely ({exc})"
+        return None, f"image too large to decode safely ({exc})", 1
+    except (OSError, ValueError, SyntaxError) as exc:
+        return None, f"corrupt or truncated image ({exc})", 1
     if min(size) < MIN_IMAGE_SIDE_PX:
-        return None, f"too small ({size[0]}x{size[1]} px, need at least {MIN_IMAGE_SIDE_PX} px per side)"
-    return size, None
+        return None, f"too small ({size[0]}x{size[1]} px, need at least {MIN_IMAGE_SIDE_PX} px per side)", 1
+    return size, None, orientation if 1 <= orientation <= 8 else 1
 
 
 def scan_images(root: Path, *, recursive: bool = False, progress: bool = True) -> ImageSet:
@@ -90,15 +98,49 @@ def scan_images(root: Path, *, recursive: bool = False, progress: bool = True) -
     if not candidates:
         hint = "" if recursive else " (use --recursive to look into sub-folders)"
         raise ValueError(f"no images found in {root}; looked for {', '.join(IMAGE_EXTENSIONS)}{hint}")
-    names, sizes, skipped = [], {}, {}
+    names, sizes, skipped, orientation = [], {}, {}, {}
     for name in tqdm(candidates, desc="check images", unit="img", disable=not progress):
-        size, reason = check_image(root / name)
+        size, reason, orient = check_image(root / name)
         if reason is not None:
             logger.warning("skipping %s: %s", name, reason)
             skipped[name] = reason
             continue
         names.append(name)
         sizes[name] = size
+        if orient != 1:
+            orientation[name] = orient
     if not names:
         raise ValueError(f"none of the {len(candidates)} image files in {root} could be used (see the warnings)")
-    return ImageSet(root=root, names=names, sizes=sizes, skipped=skipped)
+    return ImageSet(root=root, names=names, sizes=sizes, skipped=skipped, orientation=orientation)
+
+
+def upright_copy(images: ImageSet, folder: Path, *, progress: bool = True) -> ImageSet:
+    """An ImageSet in `folder` where EXIF-rotated images are stored upright (others are linked).
+
+    COLMAP uses the stored pixels and ignores the EXIF orientation tag; tools that honour the tag
+    would then see other pixels than the model was made from. This makes both agree.
+    """
+    from PIL import Image, ImageOps
+
+    folder = Path(folder)
+    sizes = dict(images.sizes)
+    for name in tqdm(images.names, desc="upright images", unit="img", disable=not progress):
+        src, dst = images.root / name, folder / name
+        if dst.exists() or dst.is_symlink():
+            if name not in images.orientation or dst.stat().st_mtime >= src.stat().st_mtime:
+                if name in images.orientation:
+                    with Image.open(dst) as im:
+                        sizes[name] = im.size
+                continue
+            dst.unlink()
+        dst.parent.mkdir(parents=True, exist_ok=True)
+        if name not in images.orientation:
+            dst.symlink_to(src.resolve())
+            continue
+        with Image.open(src) as im:
+            upright = ImageOps.exif_transpose(im)
+            tmp = dst.with_name(f".{dst.name}.tmp{dst.suffix}")
+            upright.save(tmp, quality=95)
+            tmp.replace(dst)
+            sizes[name] = upright.size
+    return ImageSet(root=folder, names=list(images.names), sizes=sizes, skipped=dict(images.skipped))

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -11,7 +13,7 @@ from tqdm import tqdm
 
 from . import colmap, state
 from .config import MatchConfig
-from .io import fingerprint
+from .io import fingerprint, read_json, write_json_atomic
 from .pairsfile import Pair, read_pairs, write_pairs
 
 logger = logging.getLogger(__name__)
@@ -27,11 +29,9 @@ def run(conf: MatchConfig, pairs_path: Path, db_path: Path, out_dir: Path, *,
     file are removed first. An interrupted run resumes (COLMAP skips pairs already matched).
     """
     out_dir = Path(out_dir)
+    restore_names(db_path, out_dir)  # after a run killed while names were aliased
     names = colmap.database_images(db_path)
     pairs = read_pairs(pairs_path, known_names=names)
-    if any(" " in n for pair in pairs for n in pair):
-        raise ValueError("image names with spaces cannot be matched by COLMAP's pair importer; "
-                         "rename the files (spaces -> '_') and run again")
     key = fingerprint({"pairs": pairs, "conf": conf.__dict__})
     if state.is_done(out_dir, STAGE, key):
         logger.info("match: %d pairs already matched, skipping", len(pairs))
@@ -45,10 +45,10 @@ def run(conf: MatchConfig, pairs_path: Path, db_path: Path, out_dir: Path, *,
     tic = time.perf_counter()
     chunk_path = out_dir / ".sara" / "match_chunk.txt"
     with tqdm(total=len(pairs), initial=len(pairs) - len(todo), desc="match pairs", unit="pair",
-              disable=not progress) as bar:
+              disable=not progress) as bar, space_free_names(db_path, out_dir) as alias:
         for start in range(0, len(todo), conf.chunk_size):
             chunk = todo[start:start + conf.chunk_size]
-            write_pairs(chunk_path, chunk)
+            write_pairs(chunk_path, [(alias.get(a, a), alias.get(b, b)) for a, b in chunk])
             colmap.match_pairs(db_path, chunk_path, conf)
             bar.update(len(chunk))
     chunk_path.unlink(missing_ok=True)
@@ -58,6 +58,50 @@ def run(conf: MatchConfig, pairs_path: Path, db_path: Path, out_dir: Path, *,
     state.mark_done(out_dir, STAGE, key, info)
     logger.info("match: %d pairs in %.1f s, %d verified", len(pairs), elapsed, info["num_verified_pairs"])
     return info
+
+
+ALIASES_NAME = "name_aliases.json"
+
+
+@contextlib.contextmanager
+def space_free_names(db_path: Path, out_dir: Path) -> Iterator[dict[str, str]]:
+    """Rename images whose names hold spaces while COLMAP's pair importer runs.
+
+    The importer splits lines at spaces, so such names become `sara-alias-<image_id>` in the
+    database for the duration; the mapping is saved first, so a killed run is repaired on resume.
+    Yields original name -> alias.
+    """
+    with colmap.open_database(db_path) as db:
+        spaced = {im.name: im.image_id for im in db.read_all_images() if " " in im.name}
+    if not spaced:
+        yield {}
+        return
+    alias = {name: f"sara-alias-{image_id}" for name, image_id in spaced.items()}
+    write_json_atomic(Path(out_dir) / ".sara" / ALIASES_NAME, alias)
+    _rename(db_path, {image_id: alias[name] for name, image_id in spaced.items()})
+    try:
+        yield alias
+    finally:
+        restore_names(db_path, out_dir)
+
+
+def restore_names(db_path: Path, out_dir: Path) -> None:
+    path = Path(out_dir) / ".sara" / ALIASES_NAME
+    if not path.exists():
+        return
+    original = {a: name for name, a in read_json(path).items()}
+    with colmap.open_database(db_path) as db:
+        ids = {im.image_id: original[im.name] for im in db.read_all_images() if im.name in original}
+    _rename(db_path, ids)
+    path.unlink()
+
+
+def _rename(db_path: Path, new_names: dict[int, str]) -> None:
+    with colmap.open_database(db_path) as db:
+        for image_id, name in new_names.items():
+            image = db.read_image(image_id)
+            image.name = name
+            db.update_image(image)
 
 
 def _clear_matches(db_path: Path) -> None:

@@ -21,7 +21,7 @@ from typing import Any
 
 from . import __version__, colmap, extract, mapping, match, state
 from .config import PipelineConfig
-from .images import ImageSet, scan_images
+from .images import ImageSet, scan_images, upright_copy
 from .io import OutputLock, fingerprint, read_json, write_json_atomic, write_text_atomic
 from .pairs import PairContext, get_source
 from .pairsfile import read_pairs, write_pairs
@@ -124,6 +124,7 @@ def run(conf: PipelineConfig, images_root: Path, out_dir: Path, *, gt_dir: Path 
     images = scan_images(images_root, recursive=conf.images.recursive, progress=progress)
     out_dir.mkdir(parents=True, exist_ok=True)
     with OutputLock(out_dir):
+        images = _handle_orientation(conf.images.exif_orientation, images, out_dir, progress)
         colmap.send_log_to(out_dir / "logs", verbose=verbose_colmap)
         colmap.set_seed(conf.seed)
         report = RunReport(out_dir, images_root, conf.to_dict(), skipped_images=images.skipped)
@@ -151,6 +152,21 @@ def run(conf: PipelineConfig, images_root: Path, out_dir: Path, *, gt_dir: Path 
         report.save()
         write_text_atomic(out_dir / "report.md", render_report(report))
     return report
+
+
+def _handle_orientation(mode: str, images: ImageSet, out_dir: Path, progress: bool) -> ImageSet:
+    if mode not in ("ignore", "apply"):
+        raise ValueError(f"images.exif_orientation must be ignore or apply, not {mode!r}")
+    if not images.orientation:
+        return images
+    if mode == "apply":
+        logger.warning("%d images carry an EXIF rotation: reconstructing from upright copies in %s",
+                       len(images.orientation), out_dir / "images_upright")
+        return upright_copy(images, out_dir / "images_upright", progress=progress)
+    logger.warning("%d images carry an EXIF rotation (e.g. %s); like COLMAP, sara uses the stored pixels. "
+                   "Use -s images.exif_orientation=apply for upright copies", len(images.orientation),
+                   next(iter(images.orientation)))
+    return images
 
 
 def render_report(report: RunReport) -> str:

@@ -1,0 +1,138 @@
+"""Messy folders, inconsistent inputs, locks and determinism: clear errors and nothing lost."""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from sara.config import make_config
+from sara.extract import OutputMismatchError
+from sara.images import check_image, scan_images
+from sara.io import OutputLock, OutputLockedError
+from sara.pipeline import run
+
+
+def _scene_images(scene) -> list[Path]:
+    images, _ = scene
+    return sorted(images.iterdir())
+
+
+@pytest.fixture(scope="module")
+def messy_folder(tmp_path_factory, synthetic_scene) -> Path:
+    """The 10 synthetic views in many guises, plus files that cannot be used."""
+    src = _scene_images(synthetic_scene)
+    root = tmp_path_factory.mktemp("messy")
+    rgb = [Image.open(p).convert("RGB") for p in src]
+    rgb[0].save(root / "view 00 é.png")  # spaces and non-ASCII
+    rgb[1].convert("L").save(root / "view01_gray.png")
+    Image.fromarray(np.asarray(rgb[2].convert("L")).astype(np.uint16) * 257).save(root / "view02_16bit.png")
+    rgb[3].convert("RGBA").save(root / "view03_rgba.png")
+    exif = Image.Exif()
+    exif[0x0112] = 6
+    rgb[4].save(root / "view04_rotated.jpg", exif=exif, quality=95)
+    for i in range(5, 10):
+        rgb[i].save(root / f"view{i:02d}.png")
+    shutil.copyfile(root / "view05.png", root / "view05_duplicate.png")
+    Image.new("RGB", (1024, 768), (120, 130, 140)).save(root / "flat.png")
+    (root / "zero.jpg").write_bytes(b"")
+    blob = (root / "view04_rotated.jpg").read_bytes()
+    (root / "truncated.jpg").write_bytes(blob[: len(blob) // 3])
+    (root / "not_an_image.png").write_text("hello")
+    Image.new("RGB", (10, 10)).save(root / "tiny.png")
+    (root / "notes.txt").write_text("not an image")
+    (root / "sub").mkdir()
+    rgb[9].save(root / "sub" / "nested.png")
+    return root
+
+
+def test_check_image_reasons(messy_folder: Path):
+    assert "0 bytes" in check_image(messy_folder / "zero.jpg")[1]
+    assert "truncated" in check_image(messy_folder / "truncated.jpg")[1]
+    assert "not a readable image" in check_image(messy_folder / "not_an_image.png")[1]
+    assert "too small" in check_image(messy_folder / "tiny.png")[1]
+    size, reason, orientation = check_image(messy_folder / "view04_rotated.jpg")
+    assert reason is None and size == (1024, 768) and orientation == 6
+
+
+def test_scan_skips_bad_files(messy_folder: Path):
+    images = scan_images(messy_folder, progress=False)
+    assert sorted(images.skipped) == ["not_an_image.png", "tiny.png", "truncated.jpg", "zero.jpg"]
+    assert len(images.names) == 12 and "sub/nested.png" not in images.names
+    assert images.orientation == {"view04_rotated.jpg": 6}
+    nested = scan_images(messy_folder, recursive=True, progress=False)
+    assert "sub/nested.png" in nested.names
+
+
+def test_messy_folder_end_to_end(tmp_path: Path, messy_folder: Path):
+    report = run(make_config("sift-offline"), messy_folder, tmp_path / "out", progress=False)
+    assert sorted(report.skipped_images) == ["not_an_image.png", "tiny.png", "truncated.jpg", "zero.jpg"]
+    assert report.stages["extract"]["images_without_features"] == ["flat.png"]
+    # every view with features is posed, the duplicate included (rescued despite zero parallax)
+    assert report.stages["map"]["component_sizes"][0] == 11
+    pairs = (tmp_path / "out" / "pairs.txt").read_text(encoding="utf-8")
+    assert "view05_duplicate.png" in pairs and "view 00 é.png" in pairs
+
+
+def test_two_unrelated_scenes_map_apart(tmp_path: Path, synthetic_scene):
+    from sara.synthetic import make_scene
+
+    other, _ = make_scene(tmp_path / "other", num_images=6, seed=7)
+    root = tmp_path / "both"
+    root.mkdir()
+    for p in _scene_images(synthetic_scene):
+        shutil.copyfile(p, root / f"a_{p.name}")
+    for p in sorted(other.iterdir()):
+        shutil.copyfile(p, root / f"b_{p.name}")
+    report = run(make_config("sift-offline"), root, tmp_path / "out", progress=False)
+    assert report.stages["pairs"]["selected_components"] == [10, 6]
+    pairs = (tmp_path / "out" / "pairs.txt").read_text().split()
+    assert all(a[0] == b[0] for a, b in zip(pairs[::2], pairs[1::2]))  # no pair across scenes
+    assert report.stages["map"]["component_sizes"] == [10, 6]
+
+
+def test_other_image_set_or_settings_refused(tmp_path: Path, synthetic_scene):
+    src = _scene_images(synthetic_scene)
+    set_a, set_b = tmp_path / "a", tmp_path / "b"
+    for folder, files in ((set_a, src[:3]), (set_b, src[3:6])):
+        folder.mkdir()
+        for p in files:
+            shutil.copyfile(p, folder / p.name)
+    out = tmp_path / "out"
+    conf = make_config("sift-offline", {"extract.max_num_features": 2000})
+    run(conf, set_a, out, progress=False, stop_after="extract")
+    before = (out / "features.h5").read_bytes()
+    with pytest.raises(OutputMismatchError, match="other images or other extraction settings"):
+        run(conf, set_b, out, progress=False, stop_after="extract")
+    with pytest.raises(OutputMismatchError, match="--overwrite"):
+        run(make_config("sift-offline"), set_a, out, progress=False, stop_after="extract")
+    assert (out / "features.h5").read_bytes() == before  # untouched
+
+
+def test_second_run_on_same_output_is_refused(tmp_path: Path, synthetic_scene):
+    images, _ = synthetic_scene
+    out = tmp_path / "out"
+    with OutputLock(out):
+        with pytest.raises(OutputLockedError, match="in use by another sara process"):
+            OutputLock(out).__enter__()
+        proc = subprocess.run([sys.executable, "-m", "sara", "run", str(images), str(out), "-q"],
+                              capture_output=True, text=True, timeout=120)
+    assert proc.returncode != 0 and "in use by another sara process" in proc.stderr
+    assert "Traceback" not in proc.stderr
+
+
+def test_same_seed_same_pairs(tmp_path: Path, synthetic_scene):
+    images, _ = synthetic_scene
+    conf = make_config("sift-offline")
+    run(conf, images, tmp_path / "one", progress=False, stop_after="pairs")
+    shutil.copytree(tmp_path / "one", tmp_path / "two")
+    for name in ("pairs.txt", "scores.csv", "global.h5", ".sara/pairs.json"):
+        (tmp_path / "two" / name).unlink()
+    run(conf, images, tmp_path / "two", progress=False, stop_after="pairs")
+    assert (tmp_path / "one" / "pairs.txt").read_text() == (tmp_path / "two" / "pairs.txt").read_text()
+    assert (tmp_path / "one" / "scores.csv").read_text() == (tmp_path / "two" / "scores.csv").read_text()
