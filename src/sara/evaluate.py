@@ -16,11 +16,9 @@ estimate is a list of model folders, one per connected component (``sparse/0``, 
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 import os
-import tempfile
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -28,6 +26,8 @@ from typing import Any
 
 import numpy as np
 import pycolmap
+
+from .io import write_json_atomic
 
 logger = logging.getLogger(__name__)
 
@@ -510,22 +510,6 @@ def find_model_dirs(model_root: Path) -> list[Path]:
     return numbered + sorted(p for p in subdirs if not p.name.isdigit())
 
 
-def write_json_atomic(data: dict, out_path: Path) -> None:
-    """Write ``data`` as JSON to ``out_path`` through a temporary file in the same folder."""
-    out_path = Path(out_path)
-    out_path.parent.mkdir(parents=True, exist_ok=True)
-    handle = tempfile.NamedTemporaryFile("w", dir=out_path.parent, prefix=f".{out_path.name}.",
-                                         suffix=".tmp", delete=False, encoding="utf-8")
-    try:
-        with handle:
-            json.dump(data, handle, indent=2, allow_nan=False)
-            handle.write("\n")
-        os.replace(handle.name, out_path)
-    except BaseException:
-        Path(handle.name).unlink(missing_ok=True)
-        raise
-
-
 def run(model_root: Path, gt_dir: Path, out_path: Path | None = None) -> dict:
     """Evaluate every component under ``model_root`` against ``gt_dir``.
 
@@ -538,7 +522,7 @@ def run(model_root: Path, gt_dir: Path, out_path: Path | None = None) -> dict:
     )
     metrics = evaluate_models(model_dirs, Path(gt_dir))
     if out_path is not None:
-        write_json_atomic(metrics, Path(out_path))
-        logger.info("Wrote metrics to %s", out_path)
+        write_json_atomic(Path(out_path), metrics)
+        logger.debug("Wrote metrics to %s", out_path)
     logger.debug("Evaluation of %s:\n%s", model_root, format_table(metrics))
     return metrics
