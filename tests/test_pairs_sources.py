@@ -25,9 +25,9 @@ def test_sequential_exact():
 
 def test_sequential_quadratic_exact():
     pairs = sequential_pairs(names(20), 3, quadratic=True)
-    # window 1..3 plus offsets 2^k for k<3 (1, 2, 4): only offset 4 is new
-    assert len(pairs) == (17 * 3 + 2 + 1) + 16
-    assert ("img000.jpg", "img004.jpg") in pairs
+    # pycolmap 4.2's quadratic overlap uses only the offsets 2^k, k < overlap: 1, 2, 4
+    assert len(pairs) == 19 + 18 + 16
+    assert ("img000.jpg", "img004.jpg") in pairs and ("img000.jpg", "img003.jpg") not in pairs
 
 
 def test_canonical_and_roundtrip(tmp_path: Path):

@@ -1,0 +1,120 @@
+"""Vocabulary-tree pairs, as COLMAP's `vocab_tree_matcher` makes them (the paper's VocabTree baseline).
+
+Every image queries a pycolmap visual index of all images and is paired with its
+`pairs.vocab_num_images` best-scoring images (the query itself usually among them, as in COLMAP).
+
+The index needs a vocabulary tree: a saved one (`-s pairs.vocab_tree_path=FILE`, e.g. one of
+COLMAP's pre-built trees or the `vocab_tree.bin` of an earlier run), or, when none is given, one
+built from this collection's own SIFT descriptors and saved as `<out>/vocab_tree.bin` for reuse.
+Building is kept short (a capped, seeded sample of descriptors, one clustering round of few
+iterations) and is timed apart ("build_tree") from the retrieval itself ("retrieve"), since users
+normally load a ready tree.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from .. import colmap
+from ..features import read_features
+from ..io import fingerprint, read_json, write_json_atomic
+from ..pairsfile import Pair, canonical_pairs
+from . import PairContext, PairResult
+
+logger = logging.getLogger(__name__)
+
+TREE_NAME = "vocab_tree.bin"
+TREE_RECORD_NAME = "vocab_tree.json"  # what the saved tree was built from, so a re-run reuses it
+MAX_TREE_DESCRIPTORS = 80_000  # descriptors sampled from the whole collection to build the tree
+MIN_DESCRIPTORS_PER_WORD = 16  # fewer visual words than asked when the sample is small
+TREE_ITERATIONS = 8  # k-means iterations of the single clustering round
+
+
+def sample_sift(features_path: Path, names: Sequence[str], max_total: int, *, seed: int = 0,
+                progress: bool = True) -> np.ndarray:
+    """A seeded sample of about `max_total` SIFT descriptors, the same share from every image.
+
+    Returns (M, 128) uint8 descriptors as stored in `features.h5` (COLMAP's scaled RootSIFT).
+    """
+    rng = np.random.default_rng(seed)
+    per_image = max(1, math.ceil(max_total / max(len(names), 1)))
+    parts = []
+    for name in tqdm(names, desc="sample SIFT for the vocabulary tree", unit="img", disable=not progress):
+        desc = np.asarray(read_features(features_path, name).descriptors)
+        if len(desc) > per_image:
+            desc = desc[np.sort(rng.choice(len(desc), per_image, replace=False))]
+        parts.append(desc)
+    if not parts:
+        return np.zeros((0, 128), np.uint8)
+    return np.concatenate(parts).astype(np.uint8, copy=False)
+
+
+def num_tree_words(num_descriptors: int, requested: int) -> int:
+    """Visual words for a tree built from `num_descriptors`: `requested`, or fewer for small samples."""
+    return max(1, min(int(requested), num_descriptors // MIN_DESCRIPTORS_PER_WORD))
+
+
+def retrieval_pairs(retrieved: Sequence[Pair], names: Sequence[str]) -> list[Pair]:
+    """(query, retrieved) name pairs -> canonical pairs, self pairs and unknown names dropped."""
+    known = set(names)
+    return canonical_pairs((a, b) for a, b in retrieved if a in known and b in known)
+
+
+def build_tree(ctx: PairContext) -> tuple[Path, dict]:
+    """Build (or reuse, when built earlier from the same inputs) `<out>/vocab_tree.bin`."""
+    conf = ctx.conf.pairs
+    tree_path, record_path = Path(ctx.out_dir) / TREE_NAME, Path(ctx.out_dir) / TREE_RECORD_NAME
+    stat = Path(ctx.features_path).stat()
+    key = fingerprint({"names": list(ctx.names), "features": [stat.st_size, stat.st_mtime_ns],
+                       "words": conf.vocab_num_words, "max_descriptors": MAX_TREE_DESCRIPTORS,
+                       "iterations": TREE_ITERATIONS, "seed": ctx.conf.seed})
+    if tree_path.exists() and record_path.exists() and read_json(record_path).get("key") == key:
+        logger.info("vocabtree: reusing %s", tree_path)
+        return tree_path, {**read_json(record_path)["info"], "tree_reused": True}
+    sample = sample_sift(ctx.features_path, ctx.names, MAX_TREE_DESCRIPTORS, seed=ctx.conf.seed,
+                         progress=ctx.progress)
+    words = num_tree_words(len(sample), conf.vocab_num_words)
+    if words < 2:
+        raise ValueError(f"only {len(sample)} SIFT descriptors in the collection: too few to build a "
+                         "vocabulary tree; give a ready one with -s pairs.vocab_tree_path=FILE")
+    if words < conf.vocab_num_words:
+        logger.warning("vocabtree: %d descriptors sampled, building %d visual words instead of %d",
+                       len(sample), words, conf.vocab_num_words)
+    logger.info("vocabtree: building a tree of %d words from %d descriptors", words, len(sample))
+    colmap.build_visual_index(sample, tree_path, num_words=words, num_iterations=TREE_ITERATIONS,
+                              seed=ctx.conf.seed)
+    info = {"tree_num_words": words, "tree_num_descriptors": int(len(sample))}
+    write_json_atomic(record_path, {"key": key, "info": info})
+    return tree_path, {**info, "tree_reused": False}
+
+
+def select(ctx: PairContext) -> PairResult:
+    conf = ctx.conf.pairs
+    if conf.vocab_num_images < 1:
+        raise ValueError(f"pairs.vocab_num_images must be at least 1, got {conf.vocab_num_images}")
+    timings: dict[str, float] = {}
+    if conf.vocab_tree_path:
+        tree_path = Path(conf.vocab_tree_path).expanduser()
+        if not tree_path.is_file():
+            raise FileNotFoundError(
+                f"vocabulary tree not found: {tree_path} (pairs.vocab_tree_path); give a saved pycolmap "
+                f"visual index, e.g. the {TREE_NAME} of an earlier run, or leave it empty to build one")
+        info: dict = {"tree": str(tree_path), "tree_built": False}
+    else:
+        tic = time.perf_counter()
+        tree_path, info = build_tree(ctx)
+        timings["build_tree"] = time.perf_counter() - tic
+        info.update(tree=str(tree_path), tree_built=not info["tree_reused"])
+    tic = time.perf_counter()
+    retrieved = colmap.vocab_tree_retrieval(ctx.db_path, tree_path, conf.vocab_num_images)
+    pairs = retrieval_pairs(retrieved, ctx.names)
+    timings["retrieve"] = time.perf_counter() - tic
+    info.update(num_images=conf.vocab_num_images, num_retrieved=len(retrieved))
+    return PairResult(pairs, info, timings)

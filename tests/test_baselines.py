@@ -1,0 +1,190 @@
+"""The baseline pair sources: exact pairs on hand-built collections, and agreement with COLMAP."""
+
+from __future__ import annotations
+
+import itertools
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pycolmap
+import pytest
+
+from sara.config import make_config
+from sara.features import Features, write_features
+from sara.pairs import PairContext, get_source
+from sara.pairs.sequential import nearest_neighbours, sequential_offsets, sequential_pairs
+from sara.pairs.vocabtree import TREE_NAME, num_tree_words, retrieval_pairs
+
+
+def names(n: int) -> list[str]:
+    return [f"img{i:03d}.jpg" for i in range(n)]
+
+
+def context(tmp_path: Path, image_names: list[str], overrides: dict | None = None) -> PairContext:
+    return PairContext(names=sorted(image_names), images_root=tmp_path, features_path=tmp_path / "features.h5",
+                       db_path=tmp_path / "database.db", out_dir=tmp_path, conf=make_config("sift-offline", overrides),
+                       progress=False)
+
+
+def as_index_pairs(pairs: list[tuple[str, str]]) -> set[tuple[int, int]]:
+    return {(int(a[3:6]), int(b[3:6])) for a, b in pairs}
+
+
+# ---------------------------------------------------------------------------------------------
+# A tiny collection: each image draws its SIFT descriptors from the visual "words" of its group,
+# so images of one group share content and images of different groups share none.
+# ---------------------------------------------------------------------------------------------
+
+
+def write_collection(folder: Path, groups: list[int], *, per_image: int = 200, words_per_group: int = 30,
+                     seed: int = 0) -> list[str]:
+    """database.db (cameras, images, keypoints, descriptors) and features.h5 with the same features."""
+    rng = np.random.default_rng(seed)
+    num_groups = max(groups) + 1
+    sparse = rng.random((num_groups, words_per_group, 128)) < 0.3
+    centres = rng.integers(20, 256, size=(num_groups, words_per_group, 128)) * sparse
+    image_names = names(len(groups))
+    db = pycolmap.Database.open(str(folder / "database.db"))
+    camera_id = db.write_camera(pycolmap.Camera.create_from_model_name(1, "SIMPLE_RADIAL", 600.0, 640, 480))
+    with h5py.File(folder / "features.h5", "w") as h5:
+        for name, group in zip(image_names, groups):
+            words = rng.integers(0, words_per_group, size=per_image)
+            noise = rng.normal(0.0, 3.0, size=(per_image, 128))
+            desc = np.clip(centres[group, words] + noise, 0, 255).astype(np.uint8)
+            xy = (rng.random((per_image, 2)) * [640, 480]).astype(np.float32)
+            image_id = db.write_image(pycolmap.Image(name=name, camera_id=camera_id))
+            db.write_keypoints(image_id, xy)
+            db.write_descriptors(image_id, pycolmap.FeatureDescriptors(type=pycolmap.FeatureExtractorType.SIFT,
+                                                                       data=desc))
+            write_features(h5, name, Features(keypoints=xy - 0.5, descriptors=desc,
+                                              scores=rng.random(per_image).astype(np.float32) + 1.0,
+                                              image_size=(640, 480)))
+    db.close()
+    return image_names
+
+
+@pytest.fixture(scope="module")
+def three_pairs(tmp_path_factory) -> Path:
+    """Six images in three groups: {0, 3}, {1, 4}, {2, 5}."""
+    folder = tmp_path_factory.mktemp("three_pairs")
+    write_collection(folder, [0, 1, 2, 0, 1, 2])
+    return folder
+
+
+# ---------------------------------------------------------------------------------------------
+# Exhaustive and sequential
+# ---------------------------------------------------------------------------------------------
+
+
+def test_exhaustive_source_exact(tmp_path: Path):
+    result = get_source("exhaustive")(context(tmp_path, names(12)))
+    assert len(result.pairs) == 66
+    assert len(set(result.pairs)) == 66 and all(a < b for a, b in result.pairs)
+
+
+def test_sequential_source_exact(tmp_path: Path):
+    result = get_source("sequential")(context(tmp_path, names(10), {"pairs.sequential_overlap": "3"}))
+    # image i with i+1..i+3: 3 * 7 + 2 + 1
+    assert len(result.pairs) == 24
+    assert as_index_pairs(result.pairs) == {(i, j) for i in range(10) for j in range(i + 1, min(i + 4, 10))}
+    quadratic = get_source("sequential")(context(tmp_path, names(20), {"pairs.sequential_overlap": "3",
+                                                                       "pairs.sequential_quadratic": "true"}))
+    # offsets 1, 2, 4 (2^k, k < 3): 19 + 18 + 16
+    assert len(quadratic.pairs) == 53
+    assert (0, 4) in as_index_pairs(quadratic.pairs) and (0, 3) not in as_index_pairs(quadratic.pairs)
+
+
+def test_sequential_offsets_and_errors():
+    assert sequential_offsets(4) == [1, 2, 3, 4]
+    assert sequential_offsets(4, quadratic=True) == [1, 2, 4, 8]
+    with pytest.raises(ValueError, match="at least 1"):
+        sequential_pairs(names(5), 0)
+    assert sequential_pairs(names(1), 3) == []
+
+
+def colmap_sequential(db_path: Path, overlap: int, quadratic: bool) -> set[tuple[str, str]]:
+    opts = pycolmap.SequentialPairingOptions()
+    opts.overlap, opts.quadratic_overlap = overlap, quadratic
+    db = pycolmap.Database.open(str(db_path))
+    try:
+        ids = {im.image_id: im.name for im in db.read_all_images()}
+        pairs = pycolmap.SequentialPairGenerator(opts, db).all_pairs()
+    finally:
+        db.close()
+    return {tuple(sorted((ids[a], ids[b]))) for a, b in pairs}
+
+
+def test_sequential_agrees_with_colmap(tmp_path: Path):
+    shuffled = [names(13)[i] for i in np.random.default_rng(1).permutation(13)]  # COLMAP sorts by name too
+    db = pycolmap.Database.open(str(tmp_path / "database.db"))
+    camera_id = db.write_camera(pycolmap.Camera.create_from_model_name(1, "SIMPLE_RADIAL", 600.0, 640, 480))
+    for name in shuffled:
+        db.write_image(pycolmap.Image(name=name, camera_id=camera_id))
+    db.close()
+    for overlap, quadratic in itertools.product((1, 3, 5, 20), (False, True)):
+        ours = set(sequential_pairs(shuffled, overlap, quadratic=quadratic))
+        assert ours == colmap_sequential(tmp_path / "database.db", overlap, quadratic), (overlap, quadratic)
+
+
+def test_nearest_neighbours_exact():
+    desc = np.array([[1, 0], [0.9, 0.1], [0, 1], [0.1, 0.9], [0.7, 0.7]], dtype=np.float32)
+    assert nearest_neighbours(desc, [0, 2], 1).tolist() == [[1], [3]]
+    assert nearest_neighbours(desc, [4], 10).shape == (1, 4)  # k capped at N - 1, self excluded
+    assert nearest_neighbours(desc, [], 2).shape == (0, 0)
+
+
+def test_sequential_loop_detection(tmp_path: Path):
+    # groups: {0, 5}, {1, 2}, {3, 7}, {4, 6}; queries 0 and 4 (period 4) find 5 and 6
+    write_collection(tmp_path, [0, 1, 1, 2, 3, 0, 3, 2])
+    ctx = context(tmp_path, names(8), {"pairs.sequential_overlap": "1", "pairs.sequential_loop_detection": "true",
+                                       "pairs.sequential_loop_period": "4", "pairs.sequential_loop_neighbors": "1",
+                                       "retrieval.codebook_size": "16"})
+    result = get_source("sequential")(ctx)
+    assert as_index_pairs(result.pairs) == {(i, i + 1) for i in range(7)} | {(0, 5), (4, 6)}
+    assert result.info == {"num_sequential": 7, "num_loop_pairs_added": 2}
+
+
+# ---------------------------------------------------------------------------------------------
+# Retrieval only and the vocabulary tree
+# ---------------------------------------------------------------------------------------------
+
+
+def test_retrieval_only_finds_the_group_partner(three_pairs: Path, tmp_path: Path):
+    ctx = context(three_pairs, names(6), {"retrieval.num_neighbors": "1", "retrieval.codebook_size": "16"})
+    ctx.out_dir = tmp_path
+    result = get_source("retrieval")(ctx)
+    assert as_index_pairs(result.pairs) == {(0, 3), (1, 4), (2, 5)}
+    assert set(result.timings_s) == {"global_descriptors", "knn"}
+    ctx.conf = make_config("sift-offline", {"retrieval.num_neighbors": "5", "retrieval.codebook_size": "16"})
+    assert len(get_source("retrieval")(ctx).pairs) == 15  # k >= N - 1: every pair
+
+
+def test_vocabtree_finds_the_group_partner_and_reuses_its_tree(three_pairs: Path, tmp_path: Path):
+    ctx = context(three_pairs, names(6), {"pairs.vocab_num_images": "2"})  # the query itself and one more
+    ctx.out_dir = tmp_path / "built"
+    built = get_source("vocabtree")(ctx)
+    assert as_index_pairs(built.pairs) == {(0, 3), (1, 4), (2, 5)}
+    assert set(built.timings_s) == {"build_tree", "retrieve"}
+    tree = tmp_path / "built" / TREE_NAME
+    assert tree.is_file() and built.info["tree_built"] is True
+    again = get_source("vocabtree")(ctx)  # same inputs: the saved tree is reused, same pairs
+    assert again.info["tree_built"] is False and again.pairs == built.pairs
+    loaded_ctx = context(three_pairs, names(6), {"pairs.vocab_num_images": "2", "pairs.vocab_tree_path": str(tree)})
+    loaded_ctx.out_dir = tmp_path / "loaded"
+    loaded = get_source("vocabtree")(loaded_ctx)
+    assert loaded.pairs == built.pairs and set(loaded.timings_s) == {"retrieve"}
+    assert not (tmp_path / "loaded" / TREE_NAME).exists()
+
+
+def test_vocabtree_missing_tree_is_a_clear_error(three_pairs: Path, tmp_path: Path):
+    ctx = context(three_pairs, names(6), {"pairs.vocab_tree_path": str(tmp_path / "nope.bin")})
+    with pytest.raises(FileNotFoundError, match="vocabulary tree not found"):
+        get_source("vocabtree")(ctx)
+
+
+def test_vocabtree_helpers():
+    assert num_tree_words(80_000, 4096) == 4096
+    assert num_tree_words(1_600, 4096) == 100
+    retrieved = [("b", "a"), ("a", "a"), ("a", "b"), ("a", "zz"), ("c", "a")]
+    assert retrieval_pairs(retrieved, ["a", "b", "c"]) == [("a", "b"), ("a", "c")]

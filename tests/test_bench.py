@@ -1,0 +1,125 @@
+"""`sara bench` on a small synthetic scene: shared features, one row per method, JSON/CSV/MD, resume."""
+
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+
+import pytest
+
+import sara.pipeline
+from sara import bench, colmap, extract, state
+from sara.cli import main
+from sara.config import make_config
+
+
+@pytest.fixture(scope="module")
+def bench_run(tmp_path_factory, synthetic_scene):
+    images, _ = synthetic_scene
+    out = tmp_path_factory.mktemp("bench")
+    conf = make_config("sift-offline", {"pairs.sequential_overlap": "3"})
+    result = bench.run_bench([images.parent], out, conf, methods=["exhaustive", "sequential"], progress=False)
+    return images.parent, out, conf, result
+
+
+def test_bench_writes_tables_with_expected_rows_and_columns(bench_run):
+    scene, out, _, result = bench_run
+    for name in ("results.json", "results.csv", "results.md"):
+        assert (out / name).is_file(), name
+    with open(out / "results.csv", newline="") as handle:
+        rows = list(csv.DictReader(handle))
+    assert list(rows[0]) == list(bench.ROW_FIELDS)
+    assert [(r["scene"], r["method"]) for r in rows] == [(scene.name, "exhaustive"), (scene.name, "sequential")]
+    by_method = {r["method"]: r for r in json.loads((out / "results.json").read_text())["rows"]}
+    assert by_method["exhaustive"]["pairs"] == 45 and by_method["sequential"]["pairs"] == 24  # 10 images, overlap 3
+    assert by_method["exhaustive"]["pairs_vs_exhaustive"] == 1.0
+    assert by_method["sequential"]["pairs_vs_exhaustive"] == pytest.approx(24 / 45)
+    for row in by_method.values():
+        assert row["error"] is None
+        assert row["num_registered"] == 10 and row["registered_pct"] == 100.0
+        assert row["auc@5"] > 0.8 and row["points3d"] > 0 and row["track_length"] > 2
+        assert row["matches_per_pair"] > 0 and row["match_s"] > 0 and row["select_s"] >= 0
+    markdown = (out / "results.md").read_text()
+    for _, title, _ in bench.TABLE_COLUMNS:
+        assert title in markdown
+    assert "| exhaustive |" in markdown and "| sequential |" in markdown
+
+
+def test_bench_shares_one_extraction(bench_run):
+    scene, out, _, _ = bench_run
+    features_key = state.read_record(out / scene.name / "features", extract.STAGE)["key"]
+    for method in ("exhaustive", "sequential"):
+        method_dir = out / scene.name / method
+        assert state.read_record(method_dir, extract.STAGE)["key"] == features_key
+        run_json = json.loads((method_dir / "run.json").read_text())
+        assert run_json["config"]["pairs"]["method"] == method
+        assert run_json["stages"]["extract"]["num_images"] == 10  # recorded by the shared extraction
+
+
+def test_bench_rerun_skips_finished_methods(bench_run, monkeypatch):
+    scene, out, conf, first = bench_run
+    calls = []
+    original = sara.pipeline.run
+
+    def counting_run(*args, **kwargs):
+        calls.append(kwargs.get("stop_after"))
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(sara.pipeline, "run", counting_run)
+    again = bench.run_bench([scene], out, conf, methods=["exhaustive", "sequential"], progress=False, plot=False)
+    assert calls == ["extract"]  # only the (skipped) shared extraction; no method ran again
+    assert again.rows == first.rows
+
+
+def test_bench_cli_resumes_and_prints(bench_run, capsys):
+    scene, out, _, _ = bench_run
+    code = main(["bench", str(scene), "--out", str(out), "--methods", "exhaustive,sequential",
+                 "-s", "pairs.sequential_overlap=3", "--no-plot", "-q"])
+    assert code == 0
+    printed = capsys.readouterr().out
+    assert "| exhaustive |" in printed and "results.csv" in printed
+
+
+def test_prepare_method_dir_recopies_stale_features(bench_run, tmp_path: Path):
+    scene, out, _, _ = bench_run
+    features = out / scene.name / "features"
+    target = tmp_path / "method"
+    assert bench.prepare_method_dir(features, target) is True
+    assert bench.prepare_method_dir(features, target) is False  # same features: kept, so a run resumes
+    state.mark_done(target, "match", "some-key")
+    state.mark_done(target, extract.STAGE, "features-of-another-extraction")
+    assert bench.prepare_method_dir(features, target) is True
+    assert state.read_record(target, "match") is None  # no stage may skip on matches of other features
+    with colmap.open_database(target / extract.DB_NAME) as db:  # the features, without matches
+        assert len(db.read_all_images()) == 10 and db.num_matched_image_pairs() == 0
+
+
+def test_bench_input_errors(tmp_path: Path):
+    with pytest.raises(ValueError, match="unknown method 'nope'"):
+        bench.parse_methods("exhaustive,nope")
+    assert bench.parse_methods("sara, exhaustive,sara") == ["sara", "exhaustive"]
+    (tmp_path / "scene" / "images").mkdir(parents=True)
+    with pytest.raises(FileNotFoundError, match="has no gt/"):
+        bench.run_bench([tmp_path / "scene"], tmp_path / "out", make_config(), methods=["exhaustive"])
+    assert main(["bench", str(tmp_path / "scene"), "--out", str(tmp_path / "out"), "-s", "pairs.method=sara"]) == 2
+
+
+def test_markdown_marks_failed_methods():
+    rows = [{"scene": "s", "method": "exhaustive", "pairs": 10, "auc@5": 0.5, "error": None},
+            {"scene": "s", "method": "sara", "error": "ModuleNotFoundError: no sara"}]
+    table = bench.markdown_table(rows, bench.TABLE_COLUMNS)
+    assert "| sara | failed: ModuleNotFoundError: no sara |" in table
+    assert "| exhaustive | - |" in table  # missing values print as '-'
+
+
+def test_ablation_variants_switch_the_graph_stages():
+    conf = make_config()
+    for variant, overrides in bench.ABLATION_VARIANTS.items():
+        graph = bench.apply_overrides(conf, overrides).graph
+        flags = (graph.use_loops, graph.use_anchors, graph.use_weak)
+        expected = {"full": (True, True, True), "tree_only": (False, False, False),
+                    "only_loops": (True, False, False), "no_weak": (True, True, False)}
+        if variant in expected:
+            assert flags == expected[variant], variant
+    assert len(bench.ABLATION_VARIANTS) == 8
