@@ -1,0 +1,402 @@
+"""Stage `retrieval`: one global descriptor per image, then cosine kNN proposes candidate pairs.
+
+Backends live behind the small `GlobalDescriptor` Protocol and are listed in the explicit registry
+`DESCRIPTORS` (name -> zero-argument factory). The default, `vlad`, needs no downloaded weights:
+VLAD (Jegou et al. 2010; intra-normalisation as in Arandjelovic & Zisserman 2013) over each image's
+own RootSIFT descriptors, with a codebook learned from the collection itself by k-means on a capped
+random sample of descriptors. `bow` is a plain tf-idf bag of visual words over the same kind of
+codebook, kept for comparison.
+
+A learned backend (e.g. DINOv2) goes in its own file and is registered lazily, so its heavy imports
+happen only when it is chosen::
+
+    DESCRIPTORS["dinov2"] = lazy_backend("sara.dinov2", "DinoV2Descriptor")
+
+`global.h5` layout (written by `run`, read by `read_global`):
+
+- dataset `names`: (N,) UTF-8 strings, image names in the order of the rows;
+- dataset `descriptors`: (N, D) float32, one L2-normalised global descriptor per row;
+- attributes `fingerprint` (of the image names, the config fields that shape the descriptors, the
+  seed and the features file), `descriptor` (backend name) and `config` (JSON).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib
+import json
+import logging
+import math
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Protocol, runtime_checkable
+
+import h5py
+import numpy as np
+from tqdm import tqdm
+
+from .config import RetrievalConfig
+from .features import read_features
+from .io import atomic_path, fingerprint
+
+logger = logging.getLogger(__name__)
+
+GLOBAL_NAME = "global.h5"
+CODEBOOK_SAMPLE_SIZE = 100_000  # descriptors sampled from the whole collection to learn the codebook
+KMEANS_ITERATIONS = 20
+BOW_CODEBOOK_SIZE = 1024  # visual words of the `bow` backend (VLAD uses conf.codebook_size)
+_KNN_CHUNK_ROWS = 1024  # rows of the similarity matrix held at once by `knn_pairs`
+_EPS = 1e-12
+
+
+@runtime_checkable
+class GlobalDescriptor(Protocol):
+    """One global descriptor per image, comparable by cosine similarity."""
+
+    name: str
+
+    def compute(self, features_path: Path, names: Sequence[str], conf: RetrievalConfig, *,
+                progress: bool = True, seed: int = 0) -> np.ndarray:
+        """(N, D) float32 descriptors of `names` (in that order), each row L2-normalised.
+
+        `seed` makes any randomness (codebook sampling, k-means) reproducible; deterministic
+        backends ignore it.
+        """
+        ...
+
+
+# ---------------------------------------------------------------------------------------------
+# Pure cores: arrays in, arrays out
+# ---------------------------------------------------------------------------------------------
+
+
+def l2_normalize(x: np.ndarray, axis: int = -1) -> np.ndarray:
+    """`x` scaled to unit L2 norm along `axis` (all-zero vectors stay zero); float32."""
+    x = np.asarray(x, dtype=np.float32)
+    norm = np.linalg.norm(x, axis=axis, keepdims=True)
+    return x / np.maximum(norm, _EPS)
+
+
+def rootsift_to_float(desc: np.ndarray) -> np.ndarray:
+    """(N, 128) uint8 RootSIFT (as COLMAP stores it) -> (N, 128) float32, rows L2-normalised."""
+    return l2_normalize(np.asarray(desc, dtype=np.float32))
+
+
+def squared_distances(x: np.ndarray, centers: np.ndarray) -> np.ndarray:
+    """(N, D), (K, D) -> (N, K) float32 squared Euclidean distances (clipped at 0)."""
+    d2 = (x * x).sum(1)[:, None] - 2.0 * (x @ centers.T) + (centers * centers).sum(1)[None, :]
+    return np.maximum(d2, 0.0, out=d2)
+
+
+def assign_words(x: np.ndarray, codebook: np.ndarray) -> np.ndarray:
+    """(N, D) descriptors -> (N,) int64 index of the nearest codebook row (ties: lowest index)."""
+    if len(x) == 0:
+        return np.zeros(0, dtype=np.int64)
+    return np.argmin(squared_distances(x, codebook), axis=1).astype(np.int64)
+
+
+def sum_by_label(x: np.ndarray, labels: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """Row sums per label: (N, D), (N,) labels in [0, k) -> (k, D) sums (x's dtype), (k,) int64 counts."""
+    counts = np.bincount(labels, minlength=k).astype(np.int64)
+    sums = np.zeros((k, x.shape[1]), dtype=x.dtype)
+    nonempty = counts > 0
+    if len(x):
+        starts = np.concatenate([[0], np.cumsum(counts)[:-1]])[nonempty]
+        sums[nonempty] = np.add.reduceat(x[np.argsort(labels, kind="stable")], starts, axis=0)
+    return sums, counts
+
+
+def _kmeans_pp_init(x: np.ndarray, k: int, rng: np.random.Generator) -> np.ndarray:
+    """k-means++ seeding: (k, D) float32 rows chosen from `x`."""
+    centers = np.empty((k, x.shape[1]), dtype=np.float32)
+    centers[0] = x[rng.integers(len(x))]
+    d2 = squared_distances(x, centers[:1])[:, 0]
+    for i in range(1, k):
+        total = float(d2.sum())
+        idx = int(rng.choice(len(x), p=d2 / total)) if total > 0 else int(rng.integers(len(x)))
+        centers[i] = x[idx]
+        d2 = np.minimum(d2, squared_distances(x, centers[i:i + 1])[:, 0])
+    return centers
+
+
+def kmeans(x: np.ndarray, k: int, *, seed: int = 0, iterations: int = KMEANS_ITERATIONS) -> np.ndarray:
+    """Lloyd's k-means with k-means++ seeding: (N, D) -> (k, D) float32 centres.
+
+    Deterministic for a given seed. A cluster that empties is re-seeded with the point farthest
+    from its centre. Needs at least `k` points.
+    """
+    x = np.asarray(x, dtype=np.float32)
+    if k < 1 or len(x) < k:
+        raise ValueError(f"k-means needs at least k={k} >= 1 points, got {len(x)}")
+    rng = np.random.default_rng(seed)
+    centers = _kmeans_pp_init(x, k, rng)
+    labels = np.full(len(x), -1, dtype=np.int64)
+    for _ in range(iterations):
+        d2 = squared_distances(x, centers)
+        new_labels = np.argmin(d2, axis=1)
+        if np.array_equal(new_labels, labels):
+            break
+        labels = new_labels
+        sums, counts = sum_by_label(x, labels, k)
+        nonempty = counts > 0
+        centers[nonempty] = sums[nonempty] / counts[nonempty, None]
+        if not nonempty.all():
+            far = np.argsort(-d2[np.arange(len(x)), labels], kind="stable")
+            centers[~nonempty] = x[far[: int((~nonempty).sum())]]
+    return centers
+
+
+def vlad(desc: np.ndarray, codebook: np.ndarray) -> np.ndarray:
+    """VLAD of one image: (N, D) local descriptors, (K, D) codebook -> (K * D,) float32.
+
+    Residuals to the nearest word are summed per word, each word's block is L2-normalised
+    (intra-normalisation), then signed square root, then global L2 normalisation. An image
+    without descriptors gives the zero vector.
+    """
+    k, dim = codebook.shape
+    out = np.zeros((k, dim), dtype=np.float32)
+    if len(desc):
+        words = assign_words(desc, codebook)
+        out = sum_by_label(np.asarray(desc - codebook[words], dtype=np.float32), words, k)[0]
+    out = l2_normalize(out, axis=1)
+    out = np.sign(out) * np.sqrt(np.abs(out))
+    return l2_normalize(out.reshape(-1))
+
+
+def bow_tfidf(word_counts: np.ndarray) -> np.ndarray:
+    """(N, K) visual-word counts per image -> (N, K) float32 tf-idf vectors, rows L2-normalised.
+
+    tf = count / number of words in the image; idf = log(N / number of images with the word).
+    """
+    counts = np.asarray(word_counts, dtype=np.float64)
+    num_images = len(counts)
+    doc_freq = (counts > 0).sum(0)
+    idf = np.log(num_images / np.maximum(doc_freq, 1))
+    tf = counts / np.maximum(counts.sum(1, keepdims=True), 1.0)
+    return l2_normalize(tf * idf)
+
+
+def pca_whiten(desc: np.ndarray, *, dims: int | None = None, eps: float = 1e-6) -> np.ndarray:
+    """PCA-whitening learned from the rows themselves: (N, D) -> (N, d) float32, rows L2-normalised.
+
+    Keeps d = min(dims, N - 1, D) principal components and divides each by the square root of its
+    eigenvalue (plus `eps` times the largest, to keep noise directions from exploding).
+    """
+    x = np.asarray(desc, dtype=np.float64)
+    centred = x - x.mean(0, keepdims=True)
+    _, sing, vt = np.linalg.svd(centred, full_matrices=False)
+    keep = max(1, min(dims or vt.shape[0], len(x) - 1, vt.shape[0]))
+    var = sing[:keep] ** 2 / max(len(x) - 1, 1)
+    proj = centred @ vt[:keep].T / np.sqrt(var + eps * var.max() + _EPS)
+    return l2_normalize(proj)
+
+
+def knn_pairs(desc: np.ndarray, k: int) -> np.ndarray:
+    """Top-k cosine neighbours of every image, as a symmetric union of undirected pairs.
+
+    desc: (N, D) rows (normalised here, so any non-zero scale works). Returns (E, 2) int64 pairs
+    with i < j, sorted, unique, no self pairs. Ties go to the lower index. With k >= N - 1 every
+    pair is returned.
+    """
+    if k < 1:
+        raise ValueError(f"num_neighbors must be at least 1, got {k}")
+    x = l2_normalize(np.asarray(desc, dtype=np.float32))
+    num = len(x)
+    k = min(k, num - 1)
+    if k < 1:
+        return np.zeros((0, 2), dtype=np.int64)
+    found = []
+    for start in range(0, num, _KNN_CHUNK_ROWS):
+        rows = np.arange(start, min(start + _KNN_CHUNK_ROWS, num))
+        sim = x[rows] @ x.T
+        sim[np.arange(len(rows)), rows] = -np.inf
+        nbrs = np.argsort(-sim, axis=1, kind="stable")[:, :k]
+        found.append(np.stack([np.repeat(rows, k), nbrs.reshape(-1)], axis=1))
+    pairs = np.sort(np.concatenate(found), axis=1).astype(np.int64)
+    return np.unique(pairs, axis=0)
+
+
+# ---------------------------------------------------------------------------------------------
+# Local descriptors of the collection and the codebook learned from them
+# ---------------------------------------------------------------------------------------------
+
+
+def local_descriptors(features_path: Path, name: str, features_per_image: int) -> np.ndarray:
+    """(M, 128) float32 unit RootSIFT of one image: its `features_per_image` largest-scale ones."""
+    feats = read_features(features_path, name, top_k=features_per_image if features_per_image > 0 else None)
+    return rootsift_to_float(feats.descriptors)
+
+
+def sample_descriptors(features_path: Path, names: Sequence[str], features_per_image: int,
+                       sample_size: int, *, seed: int = 0, progress: bool = True) -> np.ndarray:
+    """A random sample of about `sample_size` descriptors, the same share from every image.
+
+    Draws from each image's `features_per_image` largest-scale descriptors; (M, 128) float32.
+    """
+    rng = np.random.default_rng(seed)
+    per_image = max(1, math.ceil(sample_size / max(len(names), 1)))
+    parts = []
+    for name in tqdm(names, desc="sample descriptors", unit="img", disable=not progress):
+        desc = local_descriptors(features_path, name, features_per_image)
+        if len(desc) > per_image:
+            desc = desc[np.sort(rng.choice(len(desc), per_image, replace=False))]
+        parts.append(desc)
+    return np.concatenate(parts) if parts else np.zeros((0, 128), np.float32)
+
+
+def learn_codebook(features_path: Path, names: Sequence[str], num_words: int, features_per_image: int, *,
+                   sample_size: int = CODEBOOK_SAMPLE_SIZE, seed: int = 0, progress: bool = True) -> np.ndarray:
+    """(K, 128) float32 visual words: k-means on a capped sample of the collection's descriptors.
+
+    K is `num_words`, or fewer (with a warning) when the collection has fewer descriptors.
+    """
+    sample = sample_descriptors(features_path, names, features_per_image, sample_size, seed=seed,
+                                progress=progress)
+    if len(sample) == 0:
+        raise ValueError("no local descriptors in the collection: cannot learn a codebook")
+    k = min(num_words, len(sample))
+    if k < num_words:
+        logger.warning("only %d descriptors in the collection: codebook of %d words instead of %d",
+                       len(sample), k, num_words)
+    return kmeans(sample, k, seed=seed)
+
+
+# ---------------------------------------------------------------------------------------------
+# Backends
+# ---------------------------------------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class VladDescriptor:
+    """VLAD over the image's own RootSIFT, codebook from the collection (no weights needed).
+
+    D = codebook_size * 128. `whiten` adds PCA-whitening learned from the collection's VLADs.
+    """
+
+    name: str = "vlad"
+    whiten: bool = False
+    sample_size: int = CODEBOOK_SAMPLE_SIZE
+
+    def compute(self, features_path: Path, names: Sequence[str], conf: RetrievalConfig, *,
+                progress: bool = True, seed: int = 0) -> np.ndarray:
+        codebook = learn_codebook(features_path, names, conf.codebook_size, conf.features_per_image,
+                                  sample_size=self.sample_size, seed=seed, progress=progress)
+        out = np.zeros((len(names), codebook.size), dtype=np.float32)
+        for i, name in enumerate(tqdm(names, desc="vlad", unit="img", disable=not progress)):
+            out[i] = vlad(local_descriptors(features_path, name, conf.features_per_image), codebook)
+        return pca_whiten(out) if self.whiten and len(names) > 2 else out
+
+
+@dataclasses.dataclass(frozen=True)
+class BowDescriptor:
+    """tf-idf bag of visual words (hard assignment) over a codebook learned from the collection."""
+
+    name: str = "bow"
+    num_words: int = BOW_CODEBOOK_SIZE
+    sample_size: int = CODEBOOK_SAMPLE_SIZE
+
+    def compute(self, features_path: Path, names: Sequence[str], conf: RetrievalConfig, *,
+                progress: bool = True, seed: int = 0) -> np.ndarray:
+        codebook = learn_codebook(features_path, names, self.num_words, conf.features_per_image,
+                                  sample_size=self.sample_size, seed=seed, progress=progress)
+        counts = np.zeros((len(names), len(codebook)), dtype=np.int64)
+        for i, name in enumerate(tqdm(names, desc="bag of words", unit="img", disable=not progress)):
+            words = assign_words(local_descriptors(features_path, name, conf.features_per_image), codebook)
+            counts[i] = np.bincount(words, minlength=len(codebook))
+        return bow_tfidf(counts)
+
+
+def lazy_backend(module: str, attr: str) -> Callable[[], GlobalDescriptor]:
+    """A registry entry that imports `module.attr` only when the backend is chosen."""
+
+    def factory() -> GlobalDescriptor:
+        return getattr(importlib.import_module(module), attr)()
+
+    return factory
+
+
+DESCRIPTORS: dict[str, Callable[[], GlobalDescriptor]] = {
+    "vlad": VladDescriptor,
+    "bow": BowDescriptor,
+}
+
+
+def get_descriptor(name: str) -> GlobalDescriptor:
+    """The backend registered under `name`; an unknown name is a ValueError listing the valid ones."""
+    if name not in DESCRIPTORS:
+        raise ValueError(f"unknown global descriptor {name!r}; choose one of: {', '.join(sorted(DESCRIPTORS))}")
+    return DESCRIPTORS[name]()
+
+
+# ---------------------------------------------------------------------------------------------
+# Runner and global.h5
+# ---------------------------------------------------------------------------------------------
+
+
+def _key(conf: RetrievalConfig, features_path: Path, names: Sequence[str], seed: int) -> str:
+    """Fingerprint of everything that shapes the descriptors (not num_neighbors: kNN is cheap)."""
+    stat = Path(features_path).stat()
+    fields = {k: v for k, v in dataclasses.asdict(conf).items() if k != "num_neighbors"}
+    return fingerprint({"names": list(names), "conf": fields, "seed": seed,
+                        "features": {"size": stat.st_size, "mtime_ns": stat.st_mtime_ns}})
+
+
+def _stored_fingerprint(path: Path) -> str | None:
+    if not path.exists():
+        return None
+    try:
+        with h5py.File(path, "r") as h5:
+            value = h5.attrs.get("fingerprint")
+    except OSError:  # a damaged file is recomputed
+        return None
+    return value.decode() if isinstance(value, bytes) else value
+
+
+def write_global(path: Path, names: Sequence[str], desc: np.ndarray, attrs: dict[str, str]) -> None:
+    """Write `global.h5` atomically (see the module docstring for the layout)."""
+    with atomic_path(path) as tmp:
+        with h5py.File(tmp, "w") as h5:
+            h5.create_dataset("names", data=np.array(list(names), dtype=object), dtype=h5py.string_dtype())
+            h5.create_dataset("descriptors", data=np.asarray(desc, dtype=np.float32))
+            for key, value in attrs.items():
+                h5.attrs[key] = value
+
+
+def read_global(path: Path) -> tuple[list[str], np.ndarray]:
+    """Image names and their (N, D) float32 global descriptors from `global.h5`."""
+    with h5py.File(path, "r") as h5:
+        names = [n.decode() if isinstance(n, bytes) else str(n) for n in h5["names"][()]]
+        desc = h5["descriptors"][()].astype(np.float32, copy=False)
+    return names, desc
+
+
+def pairs_from_global(path: Path, num_neighbors: int) -> list[tuple[str, str]]:
+    """Candidate pairs (name_i, name_j), i < j in file order: the symmetric kNN union."""
+    names, desc = read_global(path)
+    return [(names[i], names[j]) for i, j in knn_pairs(desc, num_neighbors)]
+
+
+def run(conf: RetrievalConfig, features_path: Path, names: Sequence[str], out_dir: Path, *,
+        overwrite: bool = False, progress: bool = True, seed: int = 0) -> Path:
+    """Compute the global descriptors of `names` into `out_dir/global.h5`; returns its path.
+
+    Skipped when `global.h5` already holds descriptors of the same names, config, seed and
+    features file (its `fingerprint` attribute).
+    """
+    features_path, out_path = Path(features_path), Path(out_dir) / GLOBAL_NAME
+    if not features_path.exists():
+        raise FileNotFoundError(f"no features file at {features_path}: run the extract stage first")
+    if not names:
+        raise ValueError("no images to describe")
+    backend = get_descriptor(conf.descriptor)
+    key = _key(conf, features_path, names, seed)
+    if not overwrite and _stored_fingerprint(out_path) == key:
+        logger.info("retrieval: %s is up to date, skipping", out_path)
+        return out_path
+    desc = np.asarray(backend.compute(features_path, list(names), conf, progress=progress, seed=seed))
+    if desc.ndim != 2 or len(desc) != len(names):
+        raise RuntimeError(f"descriptor {conf.descriptor!r} returned shape {desc.shape} for {len(names)} images")
+    write_global(out_path, names, l2_normalize(desc),
+                 {"fingerprint": key, "descriptor": conf.descriptor,
+                  "config": json.dumps(dataclasses.asdict(conf), sort_keys=True)})
+    return out_path
