@@ -8,7 +8,8 @@ noise, with what plain pycolmap makes of the very same features. Steps:
 2. a copy of that database (features only, no matches) into OUT/plain/database.db;
 3. `pycolmap.match_exhaustive` with pycolmap's default matching and verification options (the
    values sara's MatchConfig also uses), then `pycolmap.incremental_mapping` with default options
-   (seeded) into OUT/plain/sparse;
+   (seeded) except the two registration thresholds that sara's MapConfig sets (so both pipelines
+   ask COLMAP the same question), into OUT/plain/sparse;
 4. evaluation of the largest model against SCENE/gt with `sara.evaluate`, printed with the columns
    of the bench table and saved to OUT/plain/metrics.json.
 
@@ -29,7 +30,7 @@ import numpy as np
 import pycolmap
 
 from sara import bench, evaluate
-from sara.config import make_config
+from sara.config import MapConfig, make_config
 from sara.pipeline import run as sara_run
 
 logger = logging.getLogger("plain_colmap_exhaustive")
@@ -68,6 +69,9 @@ def match_and_map(db_path: Path, images: Path, sparse: Path, seed: int) -> dict:
     verification = pycolmap.TwoViewGeometryOptions()
     options = pycolmap.IncrementalPipelineOptions()
     options.random_seed = seed
+    map_defaults = MapConfig()
+    options.mapper.abs_pose_min_num_inliers = map_defaults.abs_pose_min_num_inliers
+    options.mapper.abs_pose_min_inlier_ratio = map_defaults.abs_pose_min_inlier_ratio
     sparse.mkdir(parents=True, exist_ok=True)
     tic = time.perf_counter()
     recs = pycolmap.incremental_mapping(str(db_path), str(images), str(sparse), options=options)

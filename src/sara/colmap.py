@@ -176,6 +176,8 @@ def incremental_mapping(
     opts = pycolmap.IncrementalPipelineOptions()
     opts.min_model_size = conf.min_model_size
     opts.num_threads = conf.num_threads
+    opts.mapper.abs_pose_min_num_inliers = conf.abs_pose_min_num_inliers
+    opts.mapper.abs_pose_min_inlier_ratio = conf.abs_pose_min_inlier_ratio
     opts.random_seed = seed
     opts.mapper.random_seed = seed
     opts.triangulation.random_seed = seed

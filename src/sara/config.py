@@ -93,6 +93,10 @@ class MatchConfig:
 class MapConfig:
     mapper: str = "incremental"  # incremental | global
     min_model_size: int = 3
+    # Registration of a new image (PnP): COLMAP's defaults are 30 inliers and a 0.25 ratio; lower
+    # values pose wide-baseline views that COLMAP leaves out (templeSparseRing: 16/16 instead of 13/16).
+    abs_pose_min_num_inliers: int = 15
+    abs_pose_min_inlier_ratio: float = 0.1
     num_threads: int = -1
 
 
