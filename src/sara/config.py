@@ -59,7 +59,7 @@ class ScoreConfig:
     parallax_saturation_deg: float = 10.0  # g(P) = min(P, sat) / sat
     min_overlap: float = 0.005  # tau_O
     min_parallax_deg: float = 0.5  # tau_P
-    min_inliers: int = 12
+    min_inliers: int = 15  # RANSAC on unrelated images finds 8-12 of 50 by chance
 
 
 @dataclass(frozen=True, kw_only=True)
