@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from .bench import prepare_method_dir
 from .config import make_config
 from .pipeline import run
 from .synthetic import make_scene
@@ -33,9 +34,12 @@ def run_demo(out_dir: Path, *, num_images: int = 24, progress: bool = True) -> s
     """Run the demo and return the comparison table (Markdown)."""
     out_dir = Path(out_dir)
     images, gt = make_scene(out_dir / "scene", num_images=num_images)
+    features = out_dir / "features"
+    run(make_config("sift-offline"), images, features, progress=progress, stop_after="extract")
     reports = {}
-    for method in METHODS:
+    for method in METHODS:  # the same features for both: only the pairs differ
         conf = make_config("sift-offline", {"pairs.method": method})
+        prepare_method_dir(features, out_dir / method)
         reports[method] = run(conf, images, out_dir / method, gt_dir=gt, progress=progress)
     lines = [f"sara demo: synthetic scene of {num_images} images ({out_dir})", "",
              "| | " + " | ".join(METHODS) + " |", "|---|" + "---:|" * len(METHODS)]
