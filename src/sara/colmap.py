@@ -159,14 +159,14 @@ def match_pairs(db_path: Path, pairs_path: Path, conf: MatchConfig) -> None:
     )
 
 
-def matched_pairs(db_path: Path) -> tuple[set[tuple[int, int]], dict[tuple[int, int], int]]:
-    """Image-id pairs that have raw matches, and verified inliers per pair."""
-    with open_database(db_path) as db:
-        pair_ids, _ = db.read_all_matches() if hasattr(db, "read_all_matches") else ([], None)
-        ids, num_inliers = db.read_two_view_geometry_num_inliers()
-    matched = {tuple(sorted(pycolmap.pair_id_to_image_pair(int(p)))) for p in pair_ids}
-    inliers = {tuple(sorted(pycolmap.pair_id_to_image_pair(int(p)))): int(n) for p, n in zip(ids, num_inliers)}
-    return matched, inliers
+def verified_image_pairs(db: pycolmap.Database) -> list[tuple[int, int, int]]:
+    """(image_id0, image_id1, num_inliers) of every pair with a two-view geometry, id0 < id1."""
+    pair_ids, num_inliers = db.read_two_view_geometry_num_inliers()
+    out = []
+    for pair_id, n in zip(pair_ids, num_inliers):
+        i, j = sorted(pycolmap.pair_id_to_image_pair(int(pair_id)))
+        out.append((int(i), int(j), int(n)))
+    return out
 
 
 def incremental_mapping(

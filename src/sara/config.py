@@ -75,6 +75,10 @@ class PairsConfig:
     vocab_tree_path: str = ""  # a saved pycolmap visual index; built from this collection when empty
     vocab_num_images: int = 30  # top-k of the vocabulary tree retrieval
     vocab_num_words: int = 4096
+    # SARA only: when the model splits although the selected graph is connected, match up to
+    # repair_pairs_per_view more candidates per left-out view and map again (0 rounds: never)
+    repair_rounds: int = 1
+    repair_pairs_per_view: int = 3
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -19,6 +19,7 @@ from .pairsfile import Pair, read_pairs, write_pairs
 logger = logging.getLogger(__name__)
 
 STAGE = "match"
+CONF_RECORD = "match-settings"
 
 
 def run(conf: MatchConfig, pairs_path: Path, db_path: Path, out_dir: Path, *,
@@ -36,9 +37,12 @@ def run(conf: MatchConfig, pairs_path: Path, db_path: Path, out_dir: Path, *,
     if state.is_done(out_dir, STAGE, key):
         logger.info("match: %d pairs already matched, skipping", len(pairs))
         return state.done_info(out_dir, STAGE)
-    record = state.read_record(out_dir, STAGE)
-    if record is None or record.get("key") != key:
-        _clear_matches(db_path)  # a fresh start, or matches of other pairs / settings
+    conf_key = fingerprint(conf.__dict__)
+    if not state.is_done(out_dir, CONF_RECORD, conf_key):
+        _clear_matches(db_path)  # a fresh start, or matches made with other settings
+        state.mark_done(out_dir, CONF_RECORD, conf_key)
+    else:
+        _remove_other_pairs(db_path, pairs, names)  # keep the matches that are still wanted
     state.mark_started(out_dir, STAGE, key)
 
     todo = _unmatched(db_path, pairs, names)
@@ -108,6 +112,16 @@ def _clear_matches(db_path: Path) -> None:
     with colmap.open_database(db_path) as db:
         db.clear_matches()
         db.clear_two_view_geometries()
+
+
+def _remove_other_pairs(db_path: Path, pairs: list[Pair], ids: dict[str, int]) -> None:
+    """Delete matches of pairs that are not in `pairs` (left by another pairs file)."""
+    wanted = {tuple(sorted((ids[a], ids[b]))) for a, b in pairs}
+    with colmap.open_database(db_path) as db:
+        for i, j, _ in colmap.verified_image_pairs(db):
+            if (i, j) not in wanted:
+                db.delete_matches(i, j)
+                db.delete_two_view_geometry(i, j)
 
 
 def _unmatched(db_path: Path, pairs: list[Pair], ids: dict[str, int]) -> list[Pair]:

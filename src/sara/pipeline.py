@@ -142,9 +142,9 @@ def run(conf: PipelineConfig, images_root: Path, out_dir: Path, *, gt_dir: Path 
         report.stages["match"] = match.run(conf.match, out_dir / "pairs.txt", out_dir / extract.DB_NAME, out_dir,
                                            progress=progress)
         report.save()
-        upstream = (state.read_record(out_dir, match.STAGE) or {}).get("key", "")
-        report.stages["map"] = mapping.run(conf.map, out_dir / extract.DB_NAME, images.root, out_dir,
-                                           seed=conf.seed, upstream_key=upstream, progress=progress)
+        report.stages["map"] = _map(conf, images, out_dir, progress)
+        if conf.pairs.method == "sara" and conf.pairs.repair_rounds > 0:
+            _repair(conf, images, out_dir, report, progress)
         if gt_dir is not None:
             from .evaluate import run as evaluate_run
 
@@ -152,6 +152,47 @@ def run(conf: PipelineConfig, images_root: Path, out_dir: Path, *, gt_dir: Path 
         report.save()
         write_text_atomic(out_dir / "report.md", render_report(report))
     return report
+
+
+def _map(conf: PipelineConfig, images: ImageSet, out_dir: Path, progress: bool) -> dict:
+    upstream = (state.read_record(out_dir, match.STAGE) or {}).get("key", "")
+    return mapping.run(conf.map, out_dir / extract.DB_NAME, images.root, out_dir, seed=conf.seed,
+                       upstream_key=upstream, progress=progress)
+
+
+def _repair(conf: PipelineConfig, images: ImageSet, out_dir: Path, report: RunReport, progress: bool) -> None:
+    """Re-link views that the mapper left out of the main model (see `repair.py`)."""
+    from . import repair
+
+    pairs_path = out_dir / "pairs.txt"
+    info: dict[str, Any] = {"rounds": 0, "pairs_added": 0, "time_s": 0.0}
+    for _ in range(conf.pairs.repair_rounds):
+        pairs = read_pairs(pairs_path, known_names=images.names)
+        main = repair.model_images(out_dir / "sparse" / "0")
+        left_out = repair.left_out_views(images.names, pairs, main)
+        if not left_out:
+            break
+        extra = repair.repair_pairs(out_dir / "scores.csv", pairs, main, left_out, conf.pairs.repair_pairs_per_view)
+        if not extra:
+            break
+        logger.warning("%d views were left out of the main model: matching %d more pairs and mapping again",
+                       len(left_out), len(extra))
+        tic = time.perf_counter()
+        write_pairs(pairs_path, pairs + extra)
+        spent = {stage: report.stages[stage].get("time_s", 0.0) for stage in ("match", "map")}
+        report.stages["match"] = match.run(conf.match, pairs_path, out_dir / extract.DB_NAME, out_dir,
+                                           progress=progress)
+        report.stages["map"] = _map(conf, images, out_dir, progress)
+        for stage, seconds in spent.items():  # the repair's cost is part of the run's cost
+            report.stages[stage] = {**report.stages[stage], "time_s": report.stages[stage]["time_s"] + seconds}
+        info["rounds"] += 1
+        info["pairs_added"] += len(extra)
+        info["time_s"] += time.perf_counter() - tic
+        info.setdefault("left_out", []).append(len(left_out))
+    if info["rounds"]:
+        state.mark_done(out_dir, "repair", "", info)
+    if state.read_record(out_dir, "repair"):
+        report.stages["repair"] = state.done_info(out_dir, "repair")
 
 
 def _handle_orientation(mode: str, images: ImageSet, out_dir: Path, progress: bool) -> ImageSet:

@@ -1,0 +1,63 @@
+"""Closing the loop after mapping: when the model splits although SARA's view graph is connected,
+match a few more candidate pairs that link the left-out views to the main model, then map again.
+
+A sparse selection can leave a group of views hanging on one or two pairs; COLMAP may then fail
+to register them into the main model and start a separate one. The candidates that the scorer
+ranked below the selection (scores.csv) name the next best links; a handful per left-out view
+usually suffices. Views that SARA itself found unconnected (another scene) are left alone.
+"""
+
+from __future__ import annotations
+
+import csv
+import logging
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+
+from . import colmap, graph
+from .pairsfile import Pair
+
+logger = logging.getLogger(__name__)
+
+
+def model_images(model_dir: Path) -> set[str]:
+    if not (Path(model_dir) / "images.bin").exists() and not (Path(model_dir) / "images.txt").exists():
+        return set()
+    rec = colmap.read_model(model_dir)
+    return {im.name for im in rec.images.values() if im.has_pose}
+
+
+def left_out_views(names: list[str], pairs: list[Pair], main: set[str]) -> list[str]:
+    """Views outside the main model but in the selected graph's component of the main model."""
+    if not main:
+        return []
+    index = {n: i for i, n in enumerate(names)}
+    edges = np.array([sorted((index[a], index[b])) for a, b in pairs], dtype=np.int64).reshape(-1, 2)
+    labels = graph.connected_components(len(names), edges)
+    main_labels = np.bincount([labels[index[n]] for n in main if n in index])
+    main_label = int(np.argmax(main_labels))
+    return [n for n in names if labels[index[n]] == main_label and n not in main]
+
+
+def repair_pairs(scores_csv: Path, pairs: list[Pair], main: set[str], left_out: list[str],
+                 per_view: int) -> list[Pair]:
+    """For each left-out view, its best unselected candidates (by RANSAC inliers) into the main model."""
+    chosen = {tuple(sorted(p)) for p in pairs}
+    targets = set(left_out)
+    options: dict[str, list[tuple[int, Pair]]] = defaultdict(list)
+    with open(scores_csv, newline="", encoding="utf-8") as f:
+        for row in csv.DictReader(f):
+            a, b = row["name0"], row["name1"]
+            pair = tuple(sorted((a, b)))
+            if pair in chosen or row["reason"] == "no_model":
+                continue
+            for view, other in ((a, b), (b, a)):
+                if view in targets and other in main:
+                    options[view].append((int(row["num_inliers"]), pair))
+    extra: list[Pair] = []
+    for view in left_out:
+        ranked = sorted(options[view], key=lambda item: (-item[0], item[1]))
+        extra += [pair for _, pair in ranked[:per_view]]
+    return sorted(set(extra))
