@@ -20,6 +20,7 @@ logger = logging.getLogger(__name__)
 
 STAGE = "match"
 CONF_RECORD = "match-settings"
+PROGRESS_RECORD = "match-progress"
 
 
 def run(conf: MatchConfig, pairs_path: Path, db_path: Path, out_dir: Path, *,
@@ -46,6 +47,9 @@ def run(conf: MatchConfig, pairs_path: Path, db_path: Path, out_dir: Path, *,
     state.mark_started(out_dir, STAGE, key)
 
     todo = _unmatched(db_path, pairs, names)
+    # time spent by earlier, interrupted runs on these very pairs counts too
+    progress_record = state.read_record(out_dir, PROGRESS_RECORD) or {}
+    earlier_s = float(progress_record.get("info", {}).get("time_s", 0.0)) if progress_record.get("key") == key else 0.0
     tic = time.perf_counter()
     chunk_path = out_dir / ".sara" / "match_chunk.txt"
     with tqdm(total=len(pairs), initial=len(pairs) - len(todo), desc="match pairs", unit="pair",
@@ -55,8 +59,9 @@ def run(conf: MatchConfig, pairs_path: Path, db_path: Path, out_dir: Path, *,
             write_pairs(chunk_path, [(alias.get(a, a), alias.get(b, b)) for a, b in chunk])
             colmap.match_pairs(db_path, chunk_path, conf)
             bar.update(len(chunk))
+            state.mark_done(out_dir, PROGRESS_RECORD, key, {"time_s": earlier_s + time.perf_counter() - tic})
     chunk_path.unlink(missing_ok=True)
-    elapsed = time.perf_counter() - tic
+    elapsed = earlier_s + time.perf_counter() - tic
     info = {"num_pairs": len(pairs), "num_matched_now": len(todo), "time_s": elapsed,
             **verification_stats(db_path, conf.min_num_inliers)}
     state.mark_done(out_dir, STAGE, key, info)
