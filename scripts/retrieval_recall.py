@@ -61,6 +61,9 @@ def make_variants() -> list[Variant]:
            for k in (16, 32, 64, 128, 256)]
     out += [Variant(f"vlad K=64 f={f}", "descriptor", vlad, dataclasses.replace(base, features_per_image=f))
             for f in (500, 2000, 4000)]
+    out += [Variant(f"vlad K={k} f=2000", "descriptor", vlad,
+                    dataclasses.replace(base, codebook_size=k, features_per_image=2000)) for k in (128, 256)]
+    out += [Variant("vlad K=64 f=all", "descriptor", vlad, dataclasses.replace(base, features_per_image=0))]
     out += [Variant("vlad K=64 f=1000 +pca-white", "descriptor", white, base)]
     out += [Variant("bow tf-idf 1024 f=1000", "descriptor", retrieval.BowDescriptor(), base)]
     out += [Variant("oracle: top-k by gt matches", "oracle")]

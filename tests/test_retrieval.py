@@ -197,6 +197,10 @@ def test_run_writes_global_h5_and_skips_when_up_to_date(tmp_path: Path, monkeypa
     pairs = retrieval.pairs_from_global(path, PER_GROUP - 1)
     assert all(a.split("/")[0] == b.split("/")[0] for a, b in pairs)
 
+    shuffled = names[::-1]
+    assert retrieval.run(conf, features, shuffled, tmp_path / "out", progress=False) == path
+    assert retrieval.read_global(path)[0] == names  # rows stay in name order
+
     calls = []
     monkeypatch.setattr(retrieval, "learn_codebook", lambda *a, **k: calls.append(1) or np.eye(8, 128))
     retrieval.run(RetrievalConfig(codebook_size=8, features_per_image=100, num_neighbors=5), features, names,
