@@ -165,6 +165,8 @@ def _cmd_map(args: argparse.Namespace) -> None:
 def _cmd_evaluate(args: argparse.Namespace) -> None:
     from .evaluate import format_table, run
 
+    if not args.gt.exists():
+        raise FileNotFoundError(f"ground-truth model folder not found: {args.gt}")
     model = args.model
     if (model / "sparse").is_dir():
         model = model / "sparse"
