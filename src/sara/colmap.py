@@ -125,21 +125,6 @@ def read_sift(db: pycolmap.Database, image_id: int) -> tuple[np.ndarray, np.ndar
     return kp[:, :2].copy(), scale.astype(np.float32), desc.astype(np.uint8, copy=False)
 
 
-def read_cameras(db_path: Path) -> dict[str, dict]:
-    """name -> {'model', 'width', 'height', 'params', 'K'} from the database."""
-    out = {}
-    with open_database(db_path) as db:
-        cams = {c.camera_id: c for c in db.read_all_cameras()}
-        for im in db.read_all_images():
-            cam = cams[im.camera_id]
-            out[im.name] = {
-                "model": cam.model.name, "width": cam.width, "height": cam.height,
-                "params": np.asarray(cam.params).tolist(), "K": np.asarray(cam.calibration_matrix()),
-                "camera_id": im.camera_id,
-            }
-    return out
-
-
 def match_pairs(db_path: Path, pairs_path: Path, conf: MatchConfig) -> None:
     """COLMAP's SIFT matching and geometric verification of the pairs in a file.
 

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import logging
-import shutil
 from pathlib import Path
 
 import h5py
@@ -145,11 +144,3 @@ def _export_h5(db_path: Path, h5_path: Path, images: ImageSet, progress: bool) -
         "keypoints_min": int(counts.min()) if len(counts) else 0,
         "images_without_features": no_features,
     }
-
-
-def copy_database(src_out: Path, dst_out: Path) -> Path:
-    """Copy an extracted database (features, no matches) into another output folder."""
-    dst = Path(dst_out) / DB_NAME
-    with atomic_path(dst) as tmp:
-        shutil.copyfile(Path(src_out) / DB_NAME, tmp)
-    return dst
