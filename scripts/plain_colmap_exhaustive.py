@@ -21,7 +21,6 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import sqlite3
 import sys
 import time
 from pathlib import Path
@@ -38,13 +37,7 @@ logger = logging.getLogger("plain_colmap_exhaustive")
 
 def copy_database(src: Path, dst: Path) -> None:
     """A consistent copy of a SQLite database (its WAL included), without matches in it."""
-    dst.unlink(missing_ok=True)
-    source, target = sqlite3.connect(f"file:{src}?mode=ro", uri=True), sqlite3.connect(dst)
-    try:
-        source.backup(target)
-    finally:
-        target.close()
-        source.close()
+    bench.copy_sqlite(src, dst)
     with pycolmap.Database.open(str(dst)) as db:
         if db.num_matched_image_pairs() or db.num_verified_image_pairs():
             raise ValueError(f"{src} already holds matches: give the database of a bare `sara extract`")

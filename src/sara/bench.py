@@ -138,7 +138,7 @@ def scene_paths(scene: Path) -> tuple[Path, Path]:
 # ---------------------------------------------------------------------------------------------
 
 
-def _copy_sqlite(src: Path, dst: Path) -> None:
+def copy_sqlite(src: Path, dst: Path) -> None:
     """Copy a SQLite database consistently (its WAL included) through SQLite's backup API."""
     with atomic_path(dst) as tmp:
         source = sqlite3.connect(f"file:{src}?mode=ro", uri=True)
@@ -177,7 +177,7 @@ def prepare_method_dir(features_dir: Path, method_dir: Path) -> bool:
         return False
     shutil.rmtree(method_dir / ".sara", ignore_errors=True)
     method_dir.mkdir(parents=True, exist_ok=True)
-    _copy_sqlite(features_dir / extract.DB_NAME, method_dir / extract.DB_NAME)
+    copy_sqlite(features_dir / extract.DB_NAME, method_dir / extract.DB_NAME)
     _link_or_copy(features_dir / extract.FEATURES_NAME, method_dir / extract.FEATURES_NAME)
     state.mark_done(method_dir, extract.STAGE, source["key"], source.get("info", {}))
     return True
