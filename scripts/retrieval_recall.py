@@ -36,7 +36,7 @@ import numpy as np
 
 from sara import colmap, gt_pairs, retrieval
 from sara.config import RetrievalConfig
-from sara.features import list_names, read_features
+from sara.io.h5 import list_names, read_features
 from sara.graph import connected_components, maximum_spanning_forest
 
 K_VALUES = (5, 10, 15, 20, 30)

@@ -11,7 +11,7 @@ import pycolmap
 import pytest
 
 from sara.config import make_config
-from sara.features import Features, write_features
+from sara.io.h5 import Features, write_features
 from sara.pairs import PairContext, get_source
 from sara.pairs.sequential import nearest_neighbours, sequential_offsets, sequential_pairs
 from sara.pairs.vocabtree import TREE_NAME, num_tree_words, retrieval_pairs

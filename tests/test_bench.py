@@ -9,7 +9,8 @@ from pathlib import Path
 import pytest
 
 import sara.pipeline
-from sara import bench, colmap, extract, state
+from sara import bench, colmap, extract
+from sara.io import records
 from sara.cli import main
 from sara.config import make_config
 
@@ -48,10 +49,10 @@ def test_bench_writes_tables_with_expected_rows_and_columns(bench_run):
 
 def test_bench_shares_one_extraction(bench_run):
     scene, out, _, _ = bench_run
-    features_key = state.read_record(out / scene.name / "features", extract.STAGE)["key"]
+    features_key = records.read_record(out / scene.name / "features", extract.STAGE)["key"]
     for method in ("exhaustive", "sequential"):
         method_dir = out / scene.name / method
-        assert state.read_record(method_dir, extract.STAGE)["key"] == features_key
+        assert records.read_record(method_dir, extract.STAGE)["key"] == features_key
         run_json = json.loads((method_dir / "run.json").read_text())
         assert run_json["config"]["pairs"]["method"] == method
         assert run_json["stages"]["extract"]["num_images"] == 10  # recorded by the shared extraction
@@ -87,10 +88,10 @@ def test_prepare_method_dir_recopies_stale_features(bench_run, tmp_path: Path):
     target = tmp_path / "method"
     assert bench.prepare_method_dir(features, target) is True
     assert bench.prepare_method_dir(features, target) is False  # same features: kept, so a run resumes
-    state.mark_done(target, "match", "some-key")
-    state.mark_done(target, extract.STAGE, "features-of-another-extraction")
+    records.mark_done(target, "match", "some-key")
+    records.mark_done(target, extract.STAGE, "features-of-another-extraction")
     assert bench.prepare_method_dir(features, target) is True
-    assert state.read_record(target, "match") is None  # no stage may skip on matches of other features
+    assert records.read_record(target, "match") is None  # no stage may skip on matches of other features
     with colmap.open_database(target / extract.DB_NAME) as db:  # the features, without matches
         assert len(db.read_all_images()) == 10 and db.num_matched_image_pairs() == 0
 

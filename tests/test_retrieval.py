@@ -11,7 +11,7 @@ import pytest
 
 from sara import retrieval
 from sara.config import RetrievalConfig
-from sara.features import Features, write_features
+from sara.io.h5 import Features, write_features
 from sara.gt_pairs import (
     GtView,
     count_consistent_matches,

@@ -13,7 +13,7 @@ from PIL import Image
 
 from sara.config import make_config
 from sara.extract import OutputMismatchError
-from sara.images import check_image, scan_images
+from sara.io.images import check_image, scan_images
 from sara.io import OutputLock, OutputLockedError
 from sara.pipeline import run
 

@@ -13,7 +13,7 @@ import pytest
 from model_utils import PinholeCamera, look_at, rotation_about_axis
 
 from sara.config import ScoreConfig
-from sara.features import Features, write_features
+from sara.io.h5 import Features, write_features
 from sara.scoring import (
     FOCAL_SCALES,
     PairScores,

@@ -32,7 +32,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from . import extract, state
+from . import extract
+from .io import records
 from .config import PipelineConfig, apply_overrides, make_config, parse_override_args
 from .io import OutputLock, atomic_path, fingerprint, write_json_atomic, write_text_atomic
 
@@ -168,10 +169,10 @@ def prepare_method_dir(features_dir: Path, method_dir: Path) -> bool:
     the features were (re)copied.
     """
     features_dir, method_dir = Path(features_dir), Path(method_dir)
-    source = state.read_record(features_dir, extract.STAGE)
+    source = records.read_record(features_dir, extract.STAGE)
     if source is None or source.get("done") is not True:
         raise FileNotFoundError(f"no finished feature extraction in {features_dir}")
-    current = state.read_record(method_dir, extract.STAGE)
+    current = records.read_record(method_dir, extract.STAGE)
     if (current is not None and current.get("key") == source["key"] and current.get("done") is True
             and (method_dir / extract.DB_NAME).exists() and (method_dir / extract.FEATURES_NAME).exists()):
         return False
@@ -179,7 +180,7 @@ def prepare_method_dir(features_dir: Path, method_dir: Path) -> bool:
     method_dir.mkdir(parents=True, exist_ok=True)
     copy_sqlite(features_dir / extract.DB_NAME, method_dir / extract.DB_NAME)
     _link_or_copy(features_dir / extract.FEATURES_NAME, method_dir / extract.FEATURES_NAME)
-    state.mark_done(method_dir, extract.STAGE, source["key"], source.get("info", {}))
+    records.mark_done(method_dir, extract.STAGE, source["key"], source.get("info", {}))
     return True
 
 
@@ -232,16 +233,16 @@ def run_method(conf: PipelineConfig, images: Path, gt_dir: Path, features_dir: P
     """
     from .pipeline import run
 
-    features_key = state.read_record(features_dir, extract.STAGE)["key"]
+    features_key = records.read_record(features_dir, extract.STAGE)["key"]
     key = bench_key(conf, features_key, gt_dir)
-    if state.is_done(method_dir, BENCH_STAGE, key):
+    if records.is_done(method_dir, BENCH_STAGE, key):
         logger.info("bench: %s already finished, skipping", method_dir)
-        return dict(state.done_info(method_dir, BENCH_STAGE))
+        return dict(records.done_info(method_dir, BENCH_STAGE))
     if prepare_method_dir(features_dir, method_dir):
         logger.debug("bench: copied the shared features into %s", method_dir)
     report = run(conf, images, method_dir, gt_dir=gt_dir, progress=progress)
     row = row_from_report(report.stages, report.metrics)
-    state.mark_done(method_dir, BENCH_STAGE, key, row)
+    records.mark_done(method_dir, BENCH_STAGE, key, row)
     return row
 
 

@@ -145,8 +145,8 @@ def _cmd_match(args: argparse.Namespace) -> None:
 
 
 def _cmd_map(args: argparse.Namespace) -> None:
-    from . import colmap, mapping, state
-    from .io import OutputLock
+    from . import colmap, mapping
+    from .io import OutputLock, records
     from .pipeline import load_run
 
     db = args.out / "database.db"
@@ -156,7 +156,7 @@ def _cmd_map(args: argparse.Namespace) -> None:
     conf = _config(args)
     with OutputLock(args.out):
         colmap.send_log_to(args.out / "logs", verbose=args.verbose)
-        upstream = (state.read_record(args.out, "match") or {}).get("key", "")
+        upstream = (records.read_record(args.out, "match") or {}).get("key", "")
         info = mapping.run(conf.map, db, images, args.out, seed=conf.seed, upstream_key=upstream,
                            progress=not args.quiet)
     print(f"{info['num_components']} model(s) with {info['component_sizes']} images -> {args.out / 'sparse'}")

@@ -9,10 +9,11 @@ import h5py
 import numpy as np
 from tqdm import tqdm
 
-from . import colmap, state
+from . import colmap
+from .io import records
 from .config import ExtractConfig
-from .features import Features, write_features
-from .images import ImageSet
+from .io.h5 import Features, write_features
+from .io.images import ImageSet
 from .io import atomic_path, fingerprint
 
 logger = logging.getLogger(__name__)
@@ -79,10 +80,10 @@ def run(conf: ExtractConfig, images: ImageSet, out_dir: Path, *, overwrite: bool
     out_dir = Path(out_dir)
     db_path, h5_path = out_dir / DB_NAME, out_dir / FEATURES_NAME
     key = _key(images, conf)
-    if not overwrite and state.is_done(out_dir, STAGE, key) and db_path.exists() and h5_path.exists():
+    if not overwrite and records.is_done(out_dir, STAGE, key) and db_path.exists() and h5_path.exists():
         logger.info("extract: features up to date, skipping")
         return h5_path
-    record = state.read_record(out_dir, STAGE)
+    record = records.read_record(out_dir, STAGE)
     if overwrite or (record is not None and record.get("key") != key):
         if record is not None and record.get("key") != key and not overwrite and db_path.exists():
             raise OutputMismatchError(
@@ -93,18 +94,20 @@ def run(conf: ExtractConfig, images: ImageSet, out_dir: Path, *, overwrite: bool
         h5_path.unlink(missing_ok=True)
     if db_path.exists() and not _check_existing_database(db_path, images):
         db_path.unlink()  # images were being imported when the run stopped: importing is cheap
-    state.mark_started(out_dir, STAGE, key)
+    records.mark_started(out_dir, STAGE, key)
 
     camera_mode = resolve_camera_mode(images, conf)
     if not db_path.exists():
         with atomic_path(db_path) as tmp:
             tmp.unlink()
             colmap.create_database(tmp)
-            colmap.import_images(tmp, images.root, images.names, conf, camera_mode)
+            colmap.import_images(tmp, images.root, images.names, camera_mode=camera_mode, camera_model=conf.camera_model,
+                                 camera_params=conf.camera_params,
+                                 default_focal_length_factor=conf.default_focal_length_factor)
     _extract_missing(db_path, images, conf, progress)
     info = _export_h5(db_path, h5_path, images, progress)
     info["camera_mode"] = camera_mode
-    state.mark_done(out_dir, STAGE, key, info)
+    records.mark_done(out_dir, STAGE, key, info)
     return h5_path
 
 
@@ -118,7 +121,9 @@ def _extract_missing(db_path: Path, images: ImageSet, conf: ExtractConfig, progr
     with tqdm(total=len(todo), desc="extract SIFT", unit="img", disable=not progress) as bar:
         for start in range(0, len(todo), chunk):
             names = todo[start:start + chunk]
-            colmap.extract_sift(db_path, images.root, names, conf)
+            colmap.extract_sift(db_path, images.root, names, max_image_size=conf.max_image_size,
+                                max_num_features=conf.max_num_features, camera_model=conf.camera_model,
+                                camera_params=conf.camera_params, num_threads=conf.num_threads)
             bar.update(len(names))
 
 

@@ -32,95 +32,14 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import breadth_first_order
 from scipy.sparse.csgraph import connected_components as _scipy_components
 
+from .config import GraphConfig
+
 logger = logging.getLogger(__name__)
 
 ROLES = ("tree", "loop", "anchor", "weak", "unselected", "rejected")
 """Every role a candidate edge can have in a :class:`Selection`, selected ones first."""
 
 SELECTED_ROLES = ("tree", "loop", "anchor", "weak")
-
-
-@dataclass(frozen=True, kw_only=True)
-class GraphConfig:
-    """Budgets and thresholds of the pair-graph stage.
-
-    Budgets are ``ceil(ratio * num_images)`` pairs per augmentation; a ratio of 0 or a
-    ``use_*`` flag set to False disables that augmentation (for ablations).
-    With the defaults the selection has about ``(N - 1) + 0.9 N = 1.9 N`` pairs, a mean
-    degree near 4: the tree gives connectivity, the rest gives redundancy.
-    """
-
-    use_loops: bool = True
-    """Run multi-scale loop consolidation."""
-    use_anchors: bool = True
-    """Add long-baseline anchors."""
-    use_weak: bool = True
-    """Reinforce weak views."""
-
-    loop_budget_ratio: float = 0.5
-    """Loop-closing pairs per image (pairs / image). Half a pair per image closes a loop
-    for roughly every other tree edge, the main defence against drift."""
-    anchor_budget_ratio: float = 0.15
-    """Long-baseline anchor pairs per image (pairs / image). Few: they are the pairs with
-    the least overlap among the useful ones, kept for triangulation angle."""
-    weak_budget_ratio: float = 0.25
-    """Weak-view pairs per image (pairs / image). Enough for every leaf of a tree
-    (about a quarter of the views in a typical capture) to get a second pair."""
-
-    loop_scale_fractions: tuple[float, float, float] = (1 / 3, 1 / 3, 1 / 3)
-    """Shares of the loop budget for short, medium and long loops (unitless, normalised
-    to sum 1). Equal shares: no scale of drift is known in advance to dominate."""
-    loop_short_frac: float = 0.1
-    """Short loops have tree path length ``L <= s1 = max(loop_min_short_len,
-    ceil(loop_short_frac * D))``, ``D`` the forest's diameter (tree edges)."""
-    loop_long_frac: float = 0.3
-    """Long loops have ``L > s2 = max(s1 + 1, ceil(loop_long_frac * D))`` (tree edges).
-    The loop score's gain ``gamma(L) = min(1, log(1 + L) / log(1 + s2))`` saturates at
-    ``s2``: long loops are ranked by weight alone, shorter ones are discounted."""
-    loop_min_short_len: int = 3
-    """Smallest ``s1`` (tree edges): triangles and quadrilaterals always count as short."""
-
-    anchor_max_per_view: int = 1
-    """Most anchors touching one view (pairs). One makes the anchors a matching, so they
-    spread over ``2 * budget`` distinct views instead of piling onto a few wide views."""
-
-    weak_degree: int = 1
-    """A view whose degree in the selected graph is at most this (pairs) is weak: a
-    leaf of the tree hangs on one pair, and one bad match detaches it."""
-    weak_quantile: float = 0.2
-    """A view whose median accepted candidate weight is strictly below this quantile
-    (0-1) of all views' medians is weak too; 0 disables this criterion."""
-    weak_per_view: int = 1
-    """Most pairs added per weak view (pairs)."""
-
-    def __post_init__(self) -> None:
-        for name in ("loop_budget_ratio", "anchor_budget_ratio", "weak_budget_ratio"):
-            if not getattr(self, name) >= 0:
-                raise ValueError(f"GraphConfig.{name} must be >= 0, got {getattr(self, name)}")
-        fractions = np.asarray(self.loop_scale_fractions, dtype=np.float64)
-        if fractions.shape != (3,) or np.any(fractions < 0) or not fractions.sum() > 0:
-            raise ValueError(
-                "GraphConfig.loop_scale_fractions must be three non-negative numbers "
-                f"with a positive sum, got {self.loop_scale_fractions}"
-            )
-        if not 0 <= self.loop_short_frac <= self.loop_long_frac:
-            raise ValueError("GraphConfig needs 0 <= loop_short_frac <= loop_long_frac")
-        if self.loop_min_short_len < 2:
-            raise ValueError("GraphConfig.loop_min_short_len must be >= 2")
-        if self.anchor_max_per_view < 1 or self.weak_per_view < 1:
-            raise ValueError("GraphConfig.anchor_max_per_view and weak_per_view must be >= 1")
-        if self.weak_degree < 0 or not 0 <= self.weak_quantile <= 1:
-            raise ValueError("GraphConfig needs weak_degree >= 0 and 0 <= weak_quantile <= 1")
-
-    def budgets(self, num_images: int) -> dict[str, int]:
-        """Pairs each augmentation may add for ``num_images`` images (0 when disabled)."""
-        ratios = {
-            "loop": self.loop_budget_ratio if self.use_loops else 0.0,
-            "anchor": self.anchor_budget_ratio if self.use_anchors else 0.0,
-            "weak": self.weak_budget_ratio if self.use_weak else 0.0,
-        }
-        # The small slack keeps e.g. 0.15 * 20 = 3.0000000000000004 from becoming 4.
-        return {k: max(0, math.ceil(r * num_images - 1e-9)) for k, r in ratios.items()}
 
 
 # ----------------------------------------------------------------------------------------

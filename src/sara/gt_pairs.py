@@ -23,7 +23,7 @@ import numpy as np
 from tqdm import tqdm
 
 from . import colmap
-from .features import read_features
+from .io.h5 import read_features
 from .io import fingerprint, read_json, write_json_atomic
 
 logger = logging.getLogger(__name__)

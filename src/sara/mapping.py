@@ -13,7 +13,8 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from . import colmap, state
+from . import colmap
+from .io import records
 from .config import MapConfig
 
 logger = logging.getLogger(__name__)
@@ -27,10 +28,10 @@ def run(conf: MapConfig, db_path: Path, images_root: Path, out_dir: Path, *, see
     out_dir = Path(out_dir)
     sparse = out_dir / "sparse"
     key = state_key(conf, seed, upstream_key)
-    if state.is_done(out_dir, STAGE, key) and sparse.exists():
+    if records.is_done(out_dir, STAGE, key) and sparse.exists():
         logger.info("map: model up to date, skipping")
-        return state.done_info(out_dir, STAGE)
-    state.mark_started(out_dir, STAGE, key)
+        return records.done_info(out_dir, STAGE)
+    records.mark_started(out_dir, STAGE, key)
     tmp = out_dir / ".sara" / "sparse.partial"
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
@@ -39,9 +40,13 @@ def run(conf: MapConfig, db_path: Path, images_root: Path, out_dir: Path, *, see
     tic = time.perf_counter()
     if conf.mapper == "incremental":
         with tqdm(total=num_images, desc="map (incremental)", unit="img", disable=not progress) as bar:
-            recs = colmap.incremental_mapping(db_path, images_root, tmp, conf, seed, on_next_image=lambda: bar.update())
+            recs = colmap.incremental_mapping(
+                db_path, images_root, tmp, seed=seed, min_model_size=conf.min_model_size,
+                abs_pose_min_num_inliers=conf.abs_pose_min_num_inliers,
+                abs_pose_min_inlier_ratio=conf.abs_pose_min_inlier_ratio, num_threads=conf.num_threads,
+                on_next_image=lambda: bar.update())
     elif conf.mapper == "global":
-        recs = colmap.global_mapping(db_path, images_root, tmp, conf, seed)
+        recs = colmap.global_mapping(db_path, images_root, tmp, seed=seed, num_threads=conf.num_threads)
     else:
         raise ValueError(f"unknown mapper {conf.mapper!r}; choose incremental or global")
     elapsed = time.perf_counter() - tic
@@ -51,7 +56,7 @@ def run(conf: MapConfig, db_path: Path, images_root: Path, out_dir: Path, *, see
     tmp.rename(sparse)
     info = {"time_s": elapsed, "num_components": len(sizes), "component_sizes": sizes,
             "num_registered": sizes[0] if sizes else 0, "num_images": num_images}
-    state.mark_done(out_dir, STAGE, key, info)
+    records.mark_done(out_dir, STAGE, key, info)
     if not sizes:
         logger.warning("map: no model could be built (too few verified matches)")
     elif len(sizes) > 1:

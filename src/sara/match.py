@@ -11,10 +11,11 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from . import colmap, state
+from . import colmap
+from .io import records
 from .config import MatchConfig
 from .io import fingerprint, read_json, write_json_atomic
-from .pairsfile import Pair, read_pairs, write_pairs
+from .io.pairs import Pair, read_pairs, write_pairs
 
 logger = logging.getLogger(__name__)
 
@@ -35,20 +36,20 @@ def run(conf: MatchConfig, pairs_path: Path, db_path: Path, out_dir: Path, *,
     names = colmap.database_images(db_path)
     pairs = read_pairs(pairs_path, known_names=names)
     key = fingerprint({"pairs": pairs, "conf": conf.__dict__})
-    if state.is_done(out_dir, STAGE, key):
+    if records.is_done(out_dir, STAGE, key):
         logger.info("match: %d pairs already matched, skipping", len(pairs))
-        return state.done_info(out_dir, STAGE)
+        return records.done_info(out_dir, STAGE)
     conf_key = fingerprint(conf.__dict__)
-    if not state.is_done(out_dir, CONF_RECORD, conf_key):
+    if not records.is_done(out_dir, CONF_RECORD, conf_key):
         _clear_matches(db_path)  # a fresh start, or matches made with other settings
-        state.mark_done(out_dir, CONF_RECORD, conf_key)
+        records.mark_done(out_dir, CONF_RECORD, conf_key)
     else:
         _remove_other_pairs(db_path, pairs, names)  # keep the matches that are still wanted
-    state.mark_started(out_dir, STAGE, key)
+    records.mark_started(out_dir, STAGE, key)
 
     todo = _unmatched(db_path, pairs, names)
     # time spent by earlier, interrupted runs on these very pairs counts too
-    progress_record = state.read_record(out_dir, PROGRESS_RECORD) or {}
+    progress_record = records.read_record(out_dir, PROGRESS_RECORD) or {}
     earlier_s = float(progress_record.get("info", {}).get("time_s", 0.0)) if progress_record.get("key") == key else 0.0
     tic = time.perf_counter()
     chunk_path = out_dir / ".sara" / "match_chunk.txt"
@@ -57,14 +58,16 @@ def run(conf: MatchConfig, pairs_path: Path, db_path: Path, out_dir: Path, *,
         for start in range(0, len(todo), conf.chunk_size):
             chunk = todo[start:start + conf.chunk_size]
             write_pairs(chunk_path, [(alias.get(a, a), alias.get(b, b)) for a, b in chunk])
-            colmap.match_pairs(db_path, chunk_path, conf)
+            colmap.match_pairs(db_path, chunk_path, max_ratio=conf.max_ratio, max_distance=conf.max_distance,
+                               cross_check=conf.cross_check, min_num_inliers=conf.min_num_inliers,
+                               num_threads=conf.num_threads)
             bar.update(len(chunk))
-            state.mark_done(out_dir, PROGRESS_RECORD, key, {"time_s": earlier_s + time.perf_counter() - tic})
+            records.mark_done(out_dir, PROGRESS_RECORD, key, {"time_s": earlier_s + time.perf_counter() - tic})
     chunk_path.unlink(missing_ok=True)
     elapsed = earlier_s + time.perf_counter() - tic
     info = {"num_pairs": len(pairs), "num_matched_now": len(todo), "time_s": elapsed,
             **verification_stats(db_path, conf.min_num_inliers)}
-    state.mark_done(out_dir, STAGE, key, info)
+    records.mark_done(out_dir, STAGE, key, info)
     logger.info("match: %d pairs in %.1f s, %d verified", len(pairs), elapsed, info["num_verified_pairs"])
     return info
 

@@ -19,12 +19,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from . import __version__, colmap, extract, mapping, match, state
+from . import __version__, colmap, extract, mapping, match
+from .io import records
 from .config import PipelineConfig
-from .images import ImageSet, scan_images, upright_copy
+from .io.images import ImageSet, scan_images, upright_copy
 from .io import OutputLock, fingerprint, read_json, write_json_atomic, write_text_atomic
 from .pairs import PairContext, get_source
-from .pairsfile import read_pairs, write_pairs
+from .io.pairs import read_pairs, write_pairs
 
 logger = logging.getLogger(__name__)
 
@@ -79,12 +80,12 @@ def select_pairs(conf: PipelineConfig, images: ImageSet, out_dir: Path, *, progr
     if source_file is not None and not source_file.exists():
         raise FileNotFoundError(f"--pairs {method}: not a pair source ({', '.join(_source_names())}) "
                                 "and no such pairs file")
-    key = pairs_key(conf, (state.read_record(out_dir, extract.STAGE) or {}).get("key", ""), source_file)
+    key = pairs_key(conf, (records.read_record(out_dir, extract.STAGE) or {}).get("key", ""), source_file)
     pairs_path = out_dir / "pairs.txt"
-    if state.is_done(out_dir, PAIRS_STAGE, key) and pairs_path.exists():
+    if records.is_done(out_dir, PAIRS_STAGE, key) and pairs_path.exists():
         logger.info("pairs: %s up to date, skipping", pairs_path)
-        return state.done_info(out_dir, PAIRS_STAGE)
-    state.mark_started(out_dir, PAIRS_STAGE, key)
+        return records.done_info(out_dir, PAIRS_STAGE)
+    records.mark_started(out_dir, PAIRS_STAGE, key)
     tic = time.perf_counter()
     if source_file is not None:
         pairs = read_pairs(source_file, known_names=images.names)
@@ -98,7 +99,7 @@ def select_pairs(conf: PipelineConfig, images: ImageSet, out_dir: Path, *, progr
     info.update(method=method, num_pairs=len(pairs), time_s=time.perf_counter() - tic)
     n = len(images.names)
     info["fraction_of_exhaustive"] = len(pairs) / max(1, n * (n - 1) // 2)
-    state.mark_done(out_dir, PAIRS_STAGE, key, info)
+    records.mark_done(out_dir, PAIRS_STAGE, key, info)
     return info
 
 
@@ -131,7 +132,7 @@ def run(conf: PipelineConfig, images_root: Path, out_dir: Path, *, gt_dir: Path 
         report.stages["images"] = {"num_images": len(images.names), "num_skipped": len(images.skipped)}
         tic = time.perf_counter()
         extract.run(conf.extract, images, out_dir, overwrite=overwrite, progress=progress)
-        report.stages["extract"] = {**state.done_info(out_dir, extract.STAGE), "time_s": time.perf_counter() - tic}
+        report.stages["extract"] = {**records.done_info(out_dir, extract.STAGE), "time_s": time.perf_counter() - tic}
         report.save()
         if stop_after == "extract":
             return report
@@ -155,7 +156,7 @@ def run(conf: PipelineConfig, images_root: Path, out_dir: Path, *, gt_dir: Path 
 
 
 def _map(conf: PipelineConfig, images: ImageSet, out_dir: Path, progress: bool) -> dict:
-    upstream = (state.read_record(out_dir, match.STAGE) or {}).get("key", "")
+    upstream = (records.read_record(out_dir, match.STAGE) or {}).get("key", "")
     return mapping.run(conf.map, out_dir / extract.DB_NAME, images.root, out_dir, seed=conf.seed,
                        upstream_key=upstream, progress=progress)
 
@@ -190,9 +191,9 @@ def _repair(conf: PipelineConfig, images: ImageSet, out_dir: Path, report: RunRe
         info["time_s"] += time.perf_counter() - tic
         info.setdefault("left_out", []).append(len(left_out))
     if info["rounds"]:
-        state.mark_done(out_dir, "repair", "", info)
-    if state.read_record(out_dir, "repair"):
-        report.stages["repair"] = state.done_info(out_dir, "repair")
+        records.mark_done(out_dir, "repair", "", info)
+    if records.read_record(out_dir, "repair"):
+        report.stages["repair"] = records.done_info(out_dir, "repair")
 
 
 def _handle_orientation(mode: str, images: ImageSet, out_dir: Path, progress: bool) -> ImageSet:

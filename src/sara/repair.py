@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from . import colmap, graph
-from .pairsfile import Pair
+from .io.pairs import Pair
 
 logger = logging.getLogger(__name__)
 

@@ -39,7 +39,7 @@ import numpy as np
 from tqdm import tqdm
 
 from .config import RetrievalConfig
-from .features import read_features
+from .io.h5 import read_features
 from .io import atomic_path, fingerprint
 
 logger = logging.getLogger(__name__)

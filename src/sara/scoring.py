@@ -36,7 +36,7 @@ from tqdm import tqdm
 
 from . import colmap
 from .config import ScoreConfig
-from .features import Features, read_features
+from .io.h5 import Features, read_features
 from .io import atomic_path
 
 logger = logging.getLogger(__name__)

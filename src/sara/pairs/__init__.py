@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from ..config import PipelineConfig
-from ..pairsfile import Pair
+from ..io.pairs import Pair
 
 
 @dataclass

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import itertools
 
-from ..pairsfile import Pair
+from ..io.pairs import Pair
 from . import PairContext, PairResult
 
 

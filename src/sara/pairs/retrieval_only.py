@@ -10,7 +10,7 @@ from __future__ import annotations
 import time
 
 from .. import retrieval
-from ..pairsfile import canonical_pairs
+from ..io.pairs import canonical_pairs
 from . import PairContext, PairResult
 
 

@@ -17,7 +17,7 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from .. import graph, retrieval, scoring
-from ..pairsfile import Pair
+from ..io.pairs import Pair
 from . import PairContext, PairResult
 
 logger = logging.getLogger(__name__)

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..pairsfile import Pair, canonical_pairs
+from ..io.pairs import Pair, canonical_pairs
 from . import PairContext, PairResult
 
 

@@ -23,9 +23,9 @@ import numpy as np
 from tqdm import tqdm
 
 from .. import colmap
-from ..features import read_features
+from ..io.h5 import read_features
 from ..io import fingerprint, read_json, write_json_atomic
-from ..pairsfile import Pair, canonical_pairs
+from ..io.pairs import Pair, canonical_pairs
 from . import PairContext, PairResult
 
 logger = logging.getLogger(__name__)

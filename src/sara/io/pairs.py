@@ -10,7 +10,7 @@ from __future__ import annotations
 from collections.abc import Iterable
 from pathlib import Path
 
-from .io import write_text_atomic
+from . import write_text_atomic
 
 Pair = tuple[str, str]
 

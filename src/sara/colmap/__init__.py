@@ -14,8 +14,6 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
-from .config import ExtractConfig, MapConfig, MatchConfig
-
 logger = logging.getLogger(__name__)
 
 _CAMERA_MODES = {
@@ -78,26 +76,28 @@ def create_database(path: Path) -> None:
     pycolmap.Database.open(str(path)).close()
 
 
-def import_images(db_path: Path, image_dir: Path, names: list[str], conf: ExtractConfig, camera_mode: str) -> None:
+def import_images(db_path: Path, image_dir: Path, names: list[str], *, camera_mode: str, camera_model: str,
+                  camera_params: str = "", default_focal_length_factor: float = 1.2) -> None:
     """Add images and their cameras to the database (no features yet)."""
     opts = pycolmap.ImageReaderOptions()
-    opts.camera_model = conf.camera_model
-    opts.camera_params = conf.camera_params
-    opts.default_focal_length_factor = conf.default_focal_length_factor
+    opts.camera_model = camera_model
+    opts.camera_params = camera_params
+    opts.default_focal_length_factor = default_focal_length_factor
     pycolmap.import_images(
         str(db_path), str(image_dir), camera_mode=_CAMERA_MODES[camera_mode], image_names=names, options=opts
     )
 
 
-def extract_sift(db_path: Path, image_dir: Path, names: list[str], conf: ExtractConfig) -> None:
+def extract_sift(db_path: Path, image_dir: Path, names: list[str], *, max_image_size: int, max_num_features: int,
+                 camera_model: str, camera_params: str = "", num_threads: int = -1) -> None:
     """SIFT (RootSIFT, COLMAP defaults) for images already imported; images with features are skipped."""
     opts = pycolmap.FeatureExtractionOptions()
-    opts.max_image_size = conf.max_image_size
-    opts.num_threads = conf.num_threads
-    opts.sift.max_num_features = conf.max_num_features
+    opts.max_image_size = max_image_size
+    opts.num_threads = num_threads
+    opts.sift.max_num_features = max_num_features
     reader = pycolmap.ImageReaderOptions()
-    reader.camera_model = conf.camera_model
-    reader.camera_params = conf.camera_params
+    reader.camera_model = camera_model
+    reader.camera_params = camera_params
     pycolmap.extract_features(
         str(db_path), str(image_dir), image_names=names, reader_options=reader,
         extraction_options=opts, device=pycolmap.Device.cpu,
@@ -125,18 +125,19 @@ def read_sift(db: pycolmap.Database, image_id: int) -> tuple[np.ndarray, np.ndar
     return kp[:, :2].copy(), scale.astype(np.float32), desc.astype(np.uint8, copy=False)
 
 
-def match_pairs(db_path: Path, pairs_path: Path, conf: MatchConfig) -> None:
+def match_pairs(db_path: Path, pairs_path: Path, *, max_ratio: float, max_distance: float, cross_check: bool,
+                min_num_inliers: int, num_threads: int = -1) -> None:
     """COLMAP's SIFT matching and geometric verification of the pairs in a file.
 
     Pairs already matched in the database are skipped by COLMAP, so this resumes.
     """
     mopts = pycolmap.FeatureMatchingOptions()
-    mopts.num_threads = conf.num_threads
-    mopts.sift.max_ratio = conf.max_ratio
-    mopts.sift.max_distance = conf.max_distance
-    mopts.sift.cross_check = conf.cross_check
+    mopts.num_threads = num_threads
+    mopts.sift.max_ratio = max_ratio
+    mopts.sift.max_distance = max_distance
+    mopts.sift.cross_check = cross_check
     vopts = pycolmap.TwoViewGeometryOptions()
-    vopts.min_num_inliers = conf.min_num_inliers
+    vopts.min_num_inliers = min_num_inliers
     pycolmap.match_image_pairs(
         str(db_path), matching_options=mopts,
         pairing_options=pycolmap.ImportedPairingOptions(match_list_path=str(pairs_path)),
@@ -155,14 +156,15 @@ def verified_image_pairs(db: pycolmap.Database) -> list[tuple[int, int, int]]:
 
 
 def incremental_mapping(
-    db_path: Path, image_dir: Path, out_dir: Path, conf: MapConfig, seed: int,
+    db_path: Path, image_dir: Path, out_dir: Path, *, seed: int, min_model_size: int,
+    abs_pose_min_num_inliers: int, abs_pose_min_inlier_ratio: float, num_threads: int = -1,
     on_next_image: Callable[[], None] | None = None,
 ) -> dict[int, pycolmap.Reconstruction]:
     opts = pycolmap.IncrementalPipelineOptions()
-    opts.min_model_size = conf.min_model_size
-    opts.num_threads = conf.num_threads
-    opts.mapper.abs_pose_min_num_inliers = conf.abs_pose_min_num_inliers
-    opts.mapper.abs_pose_min_inlier_ratio = conf.abs_pose_min_inlier_ratio
+    opts.min_model_size = min_model_size
+    opts.num_threads = num_threads
+    opts.mapper.abs_pose_min_num_inliers = abs_pose_min_num_inliers
+    opts.mapper.abs_pose_min_inlier_ratio = abs_pose_min_inlier_ratio
     opts.random_seed = seed
     opts.mapper.random_seed = seed
     opts.triangulation.random_seed = seed
@@ -172,10 +174,10 @@ def incremental_mapping(
     )
 
 
-def global_mapping(db_path: Path, image_dir: Path, out_dir: Path, conf: MapConfig, seed: int) -> dict:
+def global_mapping(db_path: Path, image_dir: Path, out_dir: Path, *, seed: int, num_threads: int = -1) -> dict:
     opts = pycolmap.GlobalPipelineOptions()
     with contextlib.suppress(AttributeError):
-        opts.num_threads = conf.num_threads
+        opts.num_threads = num_threads
     with contextlib.suppress(AttributeError):
         opts.random_seed = seed
     return pycolmap.global_mapping(str(db_path), str(image_dir), str(out_dir), options=opts)

@@ -9,7 +9,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from .io import read_json, write_json_atomic
+from . import read_json, write_json_atomic
 
 
 def _record_path(out_dir: Path, stage: str) -> Path:
