@@ -13,6 +13,7 @@ from __future__ import annotations
 
 from pathlib import Path
 from types import TracebackType
+from typing import Self
 
 import numpy as np
 import pycolmap
@@ -90,7 +91,7 @@ class DatabaseBuilder:
         self._commit()
         self._db.close()
 
-    def __enter__(self) -> DatabaseBuilder:
+    def __enter__(self) -> Self:
         return self
 
     def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
