@@ -125,48 +125,17 @@ class RssSampler(threading.Thread):
         self._sample()
 
 
-def make_context(conf, world_dir: Path, run_dir: Path, progress: bool):
-    """The PairContext the pipeline would build for this world (db copied into the run folder)."""
-    import shutil
-
-    from sara.scale.world import DB_NAME, features_path, image_set
-
-    images = image_set(world_dir)
-    feats = features_path(world_dir)
-    db = run_dir / DB_NAME
-    if not db.exists():
-        src = world_dir / DB_NAME
-        if src.stat().st_size < 256 * 1024**2:
-            shutil.copyfile(src, db)
-        else:
-            db.symlink_to(src.resolve())
-    try:
-        from sara.pipeline import pair_context
-    except ImportError:
-        pair_context = None
-    if pair_context is not None:
-        try:
-            return pair_context(conf, images, feats, run_dir, progress=progress)
-        except TypeError:
-            pass
-    from sara.pairs import PairContext
-
-    values = {"names": images.names, "images_root": images.root, "features_path": feats, "db_path": db,
-              "out_dir": run_dir, "conf": conf, "progress": progress}
-    names = {f.name for f in dataclasses.fields(PairContext)}
-    return PairContext(**{k: v for k, v in values.items() if k in names})
-
-
 def child_main(world_dir: Path, run_dir: Path, result_path: Path, sara_overrides: dict[str, str],
-               profile: str | None) -> None:
+               profile: str | None, profile_path: Path) -> None:
     import sara
     from sara.config import make_config
     from sara.io.pairs import write_pairs
     from sara.pairs import get_source
+    from sara.scale.world import selection_context
 
     conf = make_config(overrides=sara_overrides)
     run_dir.mkdir(parents=True, exist_ok=True)
-    ctx = make_context(conf, world_dir, run_dir, progress=True)
+    ctx = selection_context(conf, world_dir, run_dir, progress=True)
     source = get_source(conf.pairs.method)
     rss0 = read_rss_bytes()
     tic = time.perf_counter()
@@ -202,8 +171,8 @@ def child_main(world_dir: Path, run_dir: Path, result_path: Path, sara_overrides
         stats = pstats.Stats(prof, stream=buf)
         stats.sort_stats("cumulative").print_stats(45)
         stats.sort_stats("tottime").print_stats(30)
-        (result_path.parent / f"{result_path.stem}.cprofile.txt").write_text(buf.getvalue())
-        stats.dump_stats(str(result_path.parent / f"{result_path.stem}.cprofile.pstats"))
+        profile_path.with_suffix(".txt").write_text(buf.getvalue())
+        stats.dump_stats(str(profile_path.with_suffix(".pstats")))
     else:
         result = source(ctx)
     total = time.perf_counter() - tic
@@ -251,9 +220,10 @@ def _json_default(obj: Any) -> Any:
 
 
 def run_child(args: argparse.Namespace, world_dir: Path, run_dir: Path, child_json: Path,
-              log_path: Path) -> dict[str, Any]:
+              log_path: Path, profile_path: Path) -> dict[str, Any]:
     """Run the selection in a subprocess; stop it past the time or memory limit."""
-    cmd = [sys.executable, str(Path(__file__).resolve()), "--child", str(world_dir), str(run_dir), str(child_json)]
+    cmd = [sys.executable, str(Path(__file__).resolve()), "--child", str(world_dir), str(run_dir), str(child_json),
+           str(profile_path)]
     for item in args.set:
         cmd += ["--set", item]
     if args.profile:
@@ -413,7 +383,8 @@ def measure(args: argparse.Namespace, n: int) -> dict[str, Any] | None:
     run_dir.mkdir(parents=True)
     print(f"N={n}: selection in a subprocess (log: {run_dir / 'selection.log'}) ...", flush=True)
     load_before = os.getloadavg()
-    run = run_child(args, world_dir, run_dir, run_dir / "child.json", run_dir / "selection.log")
+    run = run_child(args, world_dir, run_dir, run_dir / "child.json", run_dir / "selection.log",
+                    results / f"{tag}.profile")
     run["loadavg_before"], run["loadavg_after"] = load_before, os.getloadavg()
     record: dict[str, Any] = {
         "num_images": n, "settings": key, "machine": machine(), "git": git_commit(args.sara_src),
@@ -632,10 +603,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--delete-worlds", action="store_true", help="delete each world after its run (saves disk)")
     p.add_argument("--report-only", action="store_true", help="only rebuild the table, JSON, Markdown and plot")
     p.add_argument("--quiet", action="store_true", help="no progress bars while synthesising")
-    p.add_argument("--child", nargs=3, type=Path, help=argparse.SUPPRESS)
+    p.add_argument("--child", nargs=4, type=Path, help=argparse.SUPPRESS)
     args = p.parse_args(argv)
     if args.child:
-        child_main(*args.child, parse_overrides(args.set), args.profile)
+        world_dir, run_dir, result_path, profile_path = args.child
+        child_main(world_dir, run_dir, result_path, parse_overrides(args.set), args.profile, profile_path)
         return 0
     if args.out is None:
         p.error("--out is required")

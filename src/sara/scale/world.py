@@ -689,6 +689,39 @@ def image_set(out_dir: Path) -> ImageSet:
     return ImageSet(root=out_dir / IMAGES_DIR, names=names, sizes={n: size for n in names})
 
 
+def selection_context(conf: Any, out_dir: Path, run_dir: Path, *, progress: bool = True) -> Any:
+    """The `sara.pairs.PairContext` the pipeline would build to select pairs on this world.
+
+    The selection writes into `run_dir` (global descriptors, scores.csv), which gets a copy of the
+    world's database (a link when it holds features), so runs never share cached results.
+    """
+    from ..pairs import PairContext
+
+    out_dir, run_dir = Path(out_dir), Path(run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    images = image_set(out_dir)
+    feats = features_path(out_dir)
+    db = run_dir / DB_NAME
+    if not db.exists():
+        if world_info(out_dir).get("db_features"):
+            db.symlink_to((out_dir / DB_NAME).resolve())
+        else:
+            shutil.copyfile(out_dir / DB_NAME, db)
+    try:
+        from ..pipeline import pair_context
+    except ImportError:
+        pair_context = None
+    if pair_context is not None:
+        try:
+            return pair_context(conf, images, feats, run_dir, progress=progress)
+        except TypeError:  # another signature: build the context from its fields
+            pass
+    values = {"names": images.names, "images_root": images.root, "features_path": feats, "db_path": db,
+              "out_dir": run_dir, "conf": conf, "progress": progress}
+    fields = {f.name for f in dataclasses.fields(PairContext)}
+    return PairContext(**{k: v for k, v in values.items() if k in fields})
+
+
 # ---------------------------------------------------------------------------------------------
 # Truth: poses and which pairs truly overlap
 # ---------------------------------------------------------------------------------------------
