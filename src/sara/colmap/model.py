@@ -256,3 +256,25 @@ def verify_matches(db_path: Path, pairs_path: Path, *, min_num_inliers: int = 15
         return int(db.num_verified_image_pairs())
     finally:
         db.close()
+
+
+def database_pairs(db_path: Path) -> tuple[list[str], dict[tuple[str, str], int]]:
+    """Image names of a database (sorted) and its verified pairs: (name0, name1) with name0 < name1 -> inliers."""
+    db = pycolmap.Database.open(str(db_path))
+    try:
+        names = {im.image_id: im.name for im in db.read_all_images()}
+        pair_ids, num_inliers = db.read_two_view_geometry_num_inliers()
+    finally:
+        db.close()
+    verified = {}
+    for pair_id, count in zip(pair_ids, num_inliers):
+        if int(count) <= 0:
+            continue
+        a, b = sorted(names[int(i)] for i in pycolmap.pair_id_to_image_pair(int(pair_id)))
+        verified[(a, b)] = int(count)
+    return sorted(names.values()), verified
+
+
+def num_registered(path: Path) -> int:
+    """Registered images of the model in `path`."""
+    return int(_read(path).num_reg_images())

@@ -1,0 +1,167 @@
+"""What a run folder says about its pairs and its model, gathered for `report.html`.
+
+`load_run(out_dir)` reads whatever the run left (every file is optional except that at least one
+of `run.json`, `pairs.txt` or `database.db` must be there) into `RunData`:
+
+- `run.json`: configuration (thresholds), per-stage times and counts, the image folder;
+- `database.db`: every image of the run and the verified pairs with their inlier counts;
+- `pairs.txt`: the pairs that were matched; `scores.csv` (SARA only): every candidate pair with
+  overlap O, parallax P (deg), weight w, inliers, accepted, reason and role;
+- `sparse/0` (the largest model) and the sizes of all models; `metrics.json` (with `--gt`).
+
+The page itself is written by `sara.report.html.write_report(out_dir)`.
+"""
+
+from __future__ import annotations
+
+import csv
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..colmap import model
+from ..export import recorded_images_root
+from ..io import read_json
+from ..io.pairs import Pair, read_pairs
+
+SELECTED_ROLES = ("tree", "loop", "anchor", "weak", "rescue")
+ALL_ROLES = SELECTED_ROLES + ("repair", "selected", "unselected", "rejected")
+
+
+@dataclass(frozen=True)
+class Scores:
+    """The columns of `scores.csv`, one row per candidate pair (arrays of equal length)."""
+
+    pairs: list[Pair]
+    num_inliers: np.ndarray  # (E,) int64
+    overlap: np.ndarray  # (E,) float64, O
+    parallax_deg: np.ndarray  # (E,) float64, P
+    weight: np.ndarray  # (E,) float64, w
+    accepted: np.ndarray  # (E,) bool
+    reason: list[str]  # "" when accepted
+    role: list[str]  # tree | loop | anchor | weak | rescue | unselected | rejected
+
+
+@dataclass
+class RunData:
+    out_dir: Path
+    run: dict[str, Any] = field(default_factory=dict)
+    names: list[str] = field(default_factory=list)  # every image of the run, sorted
+    pairs: list[Pair] = field(default_factory=list)  # matched pairs (pairs.txt)
+    verified: dict[Pair, int] = field(default_factory=dict)  # verified pair -> inlier matches
+    scores: Scores | None = None
+    model: model.ModelData | None = None  # sparse/0
+    model_sizes: list[int] = field(default_factory=list)  # registered images per model
+    metrics: dict[str, Any] | None = None
+    images_root: Path | None = None
+
+    @property
+    def config(self) -> dict[str, Any]:
+        return self.run.get("config", {})
+
+    @property
+    def stages(self) -> dict[str, Any]:
+        return self.run.get("stages", {})
+
+    @property
+    def method(self) -> str:
+        return str(self.stages.get("pairs", {}).get("method") or self.config.get("pairs", {}).get("method", "?"))
+
+    @property
+    def num_exhaustive(self) -> int:
+        n = len(self.names)
+        return n * (n - 1) // 2
+
+    def edge_roles(self) -> dict[Pair, str]:
+        """Role of every pair to draw: the scored candidates' roles; matched pairs outside them are
+        `repair` (added after mapping) in a SARA run and `selected` in any other run."""
+        roles: dict[Pair, str] = {}
+        if self.scores is not None:
+            roles.update(zip(self.scores.pairs, self.scores.role))
+        for pair in self.pairs:
+            if roles.get(pair) not in SELECTED_ROLES:
+                roles[pair] = "repair" if self.scores is not None else "selected"
+        return roles
+
+
+def read_scores(path: Path) -> Scores:
+    """Parse `scores.csv` (columns name0,name1,num_matches,num_inliers,overlap,parallax_deg,weight,accepted,reason,role)."""
+    with open(path, newline="", encoding="utf-8") as f:
+        rows = list(csv.DictReader(f))
+    missing = {"name0", "name1", "overlap", "parallax_deg", "weight"} - set(rows[0] if rows else {})
+    if rows and missing:
+        raise ValueError(f"{path} lacks the columns {sorted(missing)}")
+
+    def column(key: str, default: str = "0") -> list[str]:
+        return [row.get(key) or default for row in rows]
+
+    pairs = [_canonical(row["name0"], row["name1"]) for row in rows]
+    accepted = np.array([v.strip().lower() in ("true", "1", "yes") for v in column("accepted", "true")], dtype=bool)
+    return Scores(
+        pairs=pairs,
+        num_inliers=np.array(column("num_inliers"), dtype=np.float64).astype(np.int64),
+        overlap=np.array(column("overlap"), dtype=np.float64),
+        parallax_deg=np.array(column("parallax_deg"), dtype=np.float64),
+        weight=np.array(column("weight"), dtype=np.float64),
+        accepted=accepted,
+        reason=[r.strip() for r in column("reason", "")],
+        role=[r.strip() or ("unselected" if a else "rejected") for r, a in zip(column("role", ""), accepted)],
+    )
+
+
+def _canonical(a: str, b: str) -> Pair:
+    return (a, b) if a < b else (b, a)
+
+
+def load_run(out_dir: Path) -> RunData:
+    """Everything a run folder holds for its report (see the module docstring)."""
+    out_dir = Path(out_dir)
+    if not out_dir.is_dir():
+        raise FileNotFoundError(f"output folder not found: {out_dir}")
+    found = [name for name in ("run.json", "pairs.txt", "database.db") if (out_dir / name).exists()]
+    if not found:
+        raise FileNotFoundError(f"{out_dir} holds no sara run (no run.json, pairs.txt or database.db)")
+    data = RunData(out_dir)
+    if (out_dir / "run.json").exists():
+        data.run = read_json(out_dir / "run.json")
+    if (out_dir / "database.db").exists():
+        data.names, data.verified = model.database_pairs(out_dir / "database.db")
+    if (out_dir / "pairs.txt").exists():
+        data.pairs = read_pairs(out_dir / "pairs.txt", known_names=data.names or None)
+    if (out_dir / "scores.csv").exists():
+        data.scores = read_scores(out_dir / "scores.csv")
+    models = model.find_models(out_dir / "sparse")
+    if models:
+        data.model = model.read_model(models[0])
+        data.model_sizes = [len(data.model.names)] + [model.num_registered(m) for m in models[1:]]
+    _load_metrics(data)
+    data.names = sorted(set(data.names) | _names_in(data))
+    data.images_root = _images_root(data)
+    return data
+
+
+def _names_in(data: RunData) -> set[str]:
+    names = {n for pair in data.pairs for n in pair}
+    if data.scores is not None:
+        names |= {n for pair in data.scores.pairs for n in pair}
+    if data.model is not None:
+        names |= set(data.model.names)
+    return names
+
+
+def _load_metrics(data: RunData) -> None:
+    path = data.out_dir / "metrics.json"
+    if path.exists():
+        data.metrics = read_json(path)
+    elif data.run.get("metrics"):
+        data.metrics = data.run["metrics"]
+
+
+def _images_root(data: RunData) -> Path | None:
+    try:
+        root = recorded_images_root(data.out_dir)
+    except (FileNotFoundError, KeyError):
+        return None
+    return root if root.is_dir() else None
