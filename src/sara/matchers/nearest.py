@@ -43,6 +43,8 @@ def match_descriptors(
         matches: (K, 2) int32 indices (i0, i1).
         similarity: (K,) float32 cosine similarity of each match, in decreasing order.
     """
+    if np.ndim(desc0) != 2 or np.ndim(desc1) != 2:
+        raise ValueError(f"descriptors must be (N, D), got shapes {np.shape(desc0)} and {np.shape(desc1)}")
     d0, d1 = normalize_descriptors(desc0), normalize_descriptors(desc1)
     if d0.shape[1] != d1.shape[1]:
         raise ValueError(f"descriptor sizes differ: {d0.shape[1]} and {d1.shape[1]}")
