@@ -346,8 +346,9 @@ def test_nerfstudio_ply_holds_the_transformed_points(run_dir: Path, tmp_path: Pa
 # ---------------------------------------------------------------------------------------------
 
 # option names COLMAP 4 registers (src/colmap/controllers/option_manager.cc); it rejects any other
-COLMAP_OPTIONS = {"database_path", "image_path", "ImageReader.camera_model", "ImageReader.default_focal_length_factor",
-                  "Mapper.min_model_size", "Mapper.abs_pose_min_num_inliers", "Mapper.abs_pose_min_inlier_ratio"}
+# that `colmap mapper --project_path` registers too (the GUI registers every option)
+COLMAP_OPTIONS = {"database_path", "image_path", "Mapper.min_model_size", "Mapper.abs_pose_min_num_inliers",
+                  "Mapper.abs_pose_min_inlier_ratio"}
 
 
 def parse_ini(text: str) -> dict[str, str]:
@@ -380,8 +381,7 @@ def test_colmap_export_opens_in_pycolmap(run_dir: Path, tmp_path: Path):
 
 
 def test_project_ini_uses_the_run_settings(tmp_path: Path):
-    text = project_ini(tmp_path / "db.db", tmp_path, {"extract": {"camera_model": "OPENCV"},
-                                                       "map": {"abs_pose_min_num_inliers": 12}})
+    text = project_ini(tmp_path / "db.db", tmp_path, {"map": {"abs_pose_min_num_inliers": 12}})
     ini = parse_ini(text)
-    assert ini["ImageReader.camera_model"] == "OPENCV"
     assert ini["Mapper.abs_pose_min_num_inliers"] == "12"
+    assert ini["database_path"] == str((tmp_path / "db.db").resolve())

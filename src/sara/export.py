@@ -283,15 +283,13 @@ def copy_database(src: Path, dst: Path) -> Path:
 
 
 def project_ini(database: Path, images_root: Path, config: dict) -> str:
-    """A COLMAP project file: the database, the image folder and the settings sara ran with.
+    """A COLMAP project file: the database, the image folder and the mapper settings sara ran with.
 
-    COLMAP rejects unknown keys (boost program_options), so only options that COLMAP 4 defines are written.
+    COLMAP rejects keys that a command does not register (boost program_options), so only the paths
+    and `Mapper.*` options are written, which `colmap gui` and `colmap mapper` both register.
     """
-    extract = config.get("extract", {})
     mapper = config.get("map", {})
     lines = [f"database_path={Path(database).resolve()}", f"image_path={Path(images_root).resolve()}",
-             "[ImageReader]", f"camera_model={extract.get('camera_model', 'SIMPLE_RADIAL')}",
-             f"default_focal_length_factor={extract.get('default_focal_length_factor', 1.2)}",
              "[Mapper]", f"min_model_size={mapper.get('min_model_size', 10)}",
              f"abs_pose_min_num_inliers={mapper.get('abs_pose_min_num_inliers', 30)}",
              f"abs_pose_min_inlier_ratio={mapper.get('abs_pose_min_inlier_ratio', 0.25)}"]

@@ -329,8 +329,17 @@ def _graph_nodes(data: RunData, uv: np.ndarray, registered: np.ndarray, roles: d
             "; not registered" if left_out else f"; {observations[name]} 3D points" if name in observations else "")
         nodes.append(f"<circle cx=\"{x:.1f}\" cy=\"{y:.1f}\" r=\"{radius:.1f}\" {style}><title>{_esc(info)}</title></circle>")
         if label_all or left_out:
-            labels.append(f"<text x=\"{x + radius + 2:.1f}\" y=\"{y - radius:.1f}\">{_esc(Path(name).stem)}</text>")
+            right = x > 0.7 * FIG_W  # near the right edge: the label goes left of the node
+            lx = x - radius - 2 if right else x + radius + 2
+            anchor = " text-anchor=\"end\"" if right else ""
+            labels.append(f"<text x=\"{lx:.1f}\" y=\"{y - radius:.1f}\"{anchor}>{_esc(short_label(name))}</text>")
     return f"<g>{''.join(nodes)}</g><g class=\"labels\">{''.join(labels)}</g>"
+
+
+def short_label(name: str, max_chars: int = 14) -> str:
+    """A node label: the file name without extension, its last `max_chars` characters when longer."""
+    stem = Path(name).stem
+    return stem if len(stem) <= max_chars else "\u2026" + stem[-(max_chars - 1):]
 
 
 def _legend(counts: Counter) -> str:
@@ -651,7 +660,8 @@ svg.fig{width:100%;height:auto;background:#fbfcfd;border:1px solid #e6ebf0;borde
 .row{display:grid;grid-template-columns:repeat(auto-fit,minmax(460px,1fr));gap:16px;margin:0 0 16px}
 .row section{margin:0}
 svg.fig.dark{background:#1b2230}
-svg text{font:10px system-ui,sans-serif;fill:#333}svg .labels text{fill:#55606b}
+svg text{font:10px system-ui,sans-serif;fill:#333}
+svg .labels text{fill:#3d4852;paint-order:stroke;stroke:#fbfcfd;stroke-width:3px}
 svg.hist{width:340px;height:170px}svg.hist .t{font-weight:600}
 .hists{display:flex;flex-wrap:wrap;gap:10px}
 .legend{display:flex;flex-wrap:wrap;gap:4px 14px;margin:0 0 8px;font-size:12px}
