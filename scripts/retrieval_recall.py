@@ -34,10 +34,11 @@ from pathlib import Path
 
 import numpy as np
 
+import sara.retrieval.vlad  # noqa: F401 - makes retrieval.vlad an attribute
 from sara import colmap, gt_pairs, retrieval
 from sara.config import RetrievalConfig
 from sara.io.h5 import list_names, read_features
-from sara.graph import connected_components, maximum_spanning_forest
+from sara.selection import connected_components, maximum_spanning_forest
 
 K_VALUES = (5, 10, 15, 20, 30)
 REPO = Path(__file__).resolve().parents[1]
@@ -56,7 +57,7 @@ class Variant:
 
 def make_variants() -> list[Variant]:
     base = RetrievalConfig()
-    vlad, white = retrieval.VladDescriptor(), retrieval.VladDescriptor(whiten=True)
+    vlad, white = retrieval.vlad.VladDescriptor(), retrieval.vlad.VladDescriptor(whiten=True)
     out = [Variant(f"vlad K={k} f=1000", "descriptor", vlad, dataclasses.replace(base, codebook_size=k))
            for k in (16, 32, 64, 128, 256)]
     out += [Variant(f"vlad K=64 f={f}", "descriptor", vlad, dataclasses.replace(base, features_per_image=f))
@@ -65,7 +66,7 @@ def make_variants() -> list[Variant]:
                     dataclasses.replace(base, codebook_size=k, features_per_image=2000)) for k in (128, 256)]
     out += [Variant("vlad K=64 f=all", "descriptor", vlad, dataclasses.replace(base, features_per_image=0))]
     out += [Variant("vlad K=64 f=1000 +pca-white", "descriptor", white, base)]
-    out += [Variant("bow tf-idf 1024 f=1000", "descriptor", retrieval.BowDescriptor(), base)]
+    out += [Variant("bow tf-idf 1024 f=1000", "descriptor", retrieval.vlad.BowDescriptor(), base)]
     out += [Variant("oracle: top-k by gt matches", "oracle")]
     out += [Variant("colmap vocabtree 4096 f=all", "vocabtree", vocab_words=4096, vocab_max_features=-1)]
     out += [Variant("colmap vocabtree 4096 f=1000", "vocabtree", vocab_words=4096, vocab_max_features=1000)]

@@ -9,7 +9,10 @@ from pathlib import Path
 import pytest
 
 import sara.pipeline
+import sara.bench.tables  # noqa: F401
 from sara import bench, colmap, extract
+from sara.config import apply_overrides
+from sara.pipeline import share_features
 from sara.io import records
 from sara.cli import main
 from sara.config import make_config
@@ -30,7 +33,7 @@ def test_bench_writes_tables_with_expected_rows_and_columns(bench_run):
         assert (out / name).is_file(), name
     with open(out / "results.csv", newline="") as handle:
         rows = list(csv.DictReader(handle))
-    assert list(rows[0]) == list(bench.ROW_FIELDS)
+    assert list(rows[0]) == list(bench.tables.ROW_FIELDS)
     assert [(r["scene"], r["method"]) for r in rows] == [(scene.name, "exhaustive"), (scene.name, "sequential")]
     by_method = {r["method"]: r for r in json.loads((out / "results.json").read_text())["rows"]}
     assert by_method["exhaustive"]["pairs"] == 45 and by_method["sequential"]["pairs"] == 24  # 10 images, overlap 3
@@ -86,11 +89,11 @@ def test_prepare_method_dir_recopies_stale_features(bench_run, tmp_path: Path):
     scene, out, _, _ = bench_run
     features = out / scene.name / "features"
     target = tmp_path / "method"
-    assert bench.prepare_method_dir(features, target) is True
-    assert bench.prepare_method_dir(features, target) is False  # same features: kept, so a run resumes
+    assert share_features(features, target) is True
+    assert share_features(features, target) is False  # same features: kept, so a run resumes
     records.mark_done(target, "match", "some-key")
     records.mark_done(target, extract.STAGE, "features-of-another-extraction")
-    assert bench.prepare_method_dir(features, target) is True
+    assert share_features(features, target) is True
     assert records.read_record(target, "match") is None  # no stage may skip on matches of other features
     with colmap.open_database(target / extract.DB_NAME) as db:  # the features, without matches
         assert len(db.read_all_images()) == 10 and db.num_matched_image_pairs() == 0
@@ -109,7 +112,7 @@ def test_bench_input_errors(tmp_path: Path):
 def test_markdown_marks_failed_methods():
     rows = [{"scene": "s", "method": "exhaustive", "pairs": 10, "auc@5": 0.5, "error": None},
             {"scene": "s", "method": "sara", "error": "ModuleNotFoundError: no sara"}]
-    table = bench.markdown_table(rows, bench.TABLE_COLUMNS)
+    table = bench.tables.method_table(rows, bench.TABLE_COLUMNS)
     assert "| sara | failed: ModuleNotFoundError: no sara |" in table
     assert "| exhaustive | - |" in table  # missing values print as '-'
 
@@ -117,7 +120,7 @@ def test_markdown_marks_failed_methods():
 def test_ablation_variants_switch_the_graph_stages():
     conf = make_config()
     for variant, overrides in bench.ABLATION_VARIANTS.items():
-        graph = bench.apply_overrides(conf, overrides).graph
+        graph = apply_overrides(conf, overrides).graph
         flags = (graph.use_loops, graph.use_anchors, graph.use_weak)
         expected = {"full": (True, True, True), "tree_only": (False, False, False),
                     "only_loops": (True, False, False), "no_weak": (True, True, False)}

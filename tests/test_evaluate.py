@@ -19,17 +19,14 @@ from model_utils import (
     write_text_model,
 )
 
-from sara.evaluate import (
+from sara.colmap import load_poses, reprojection_errors_px
+from sara.evaluation import evaluate as run
+from sara.evaluation import evaluate_models, find_model_dirs, format_table
+from sara.evaluation.metrics import (
     direction_angle_deg,
-    evaluate_models,
-    find_model_dirs,
-    format_table,
-    load_poses,
     pose_auc,
     relative_pose_errors,
-    reprojection_errors_px,
     rotation_angle_deg,
-    run,
     umeyama_similarity,
 )
 

@@ -11,8 +11,8 @@ import pytest
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import minimum_spanning_tree, shortest_path
 
-from sara.graph import (
-    GraphConfig,
+from sara.config import GraphConfig
+from sara.selection import (
     RootedForest,
     connected_components,
     loop_length_thresholds,
@@ -378,7 +378,7 @@ def test_disconnected_accepted_graph_warns_and_spans_each_component(
     edges = np.array([[0, 1], [1, 2], [0, 2], [3, 4], [2, 3]])
     weight = np.array([0.5, 0.6, 0.7, 0.8, 0.9])
     accepted = np.array([True, True, True, True, False])
-    with caplog.at_level(logging.WARNING, logger="sara.graph"):
+    with caplog.at_level(logging.WARNING, logger="sara.selection.augment"):
         selection = select_pairs(6, edges, weight, np.ones(5), accepted, NO_AUGMENTATION)
     assert "3 connected components (sizes: 3, 2, 1)" in caplog.text
     assert selection.num_components == 3

@@ -18,7 +18,7 @@ def test_synthetic_end_to_end(tmp_path: Path, synthetic_scene):
     assert m["auc"]["5"] > 0.9
     assert m["rel_rotation_error_median_deg"] < 0.5
     out = tmp_path / "out"
-    for name in ("features.h5", "database.db", "pairs.txt", "run.json", "report.md", "metrics.json"):
+    for name in ("features-sift.h5", "database.db", "pairs.txt", "run.json", "report.md", "metrics.json"):
         assert (out / name).exists(), name
     assert (out / "sparse" / "0" / "cameras.bin").exists()
     saved = read_json(out / "run.json")

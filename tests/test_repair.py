@@ -1,6 +1,6 @@
 from pathlib import Path
 
-from sara.repair import left_out_views, repair_pairs
+from sara.pairs.repair import left_out_views, repair_pairs
 
 
 def _scores(path: Path, rows):

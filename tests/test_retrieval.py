@@ -10,18 +10,20 @@ import numpy as np
 import pytest
 
 from sara import retrieval
+import sara.retrieval.vlad  # noqa: F401
 from sara.config import RetrievalConfig
 from sara.io.h5 import Features, write_features
 from sara.gt_pairs import (
     GtView,
     count_consistent_matches,
     fundamental_from_poses,
-    mutual_nearest_neighbors,
     overlapping_pairs,
-    sampson_distance_px,
     strong_pairs,
 )
-from sara.retrieval import BowDescriptor, VladDescriptor, get_descriptor, kmeans, knn_pairs, vlad
+from sara.scoring.twoview import sampson_distance as sampson_distance_px
+from sara.descriptors import l2_normalize, mutual_nearest_neighbours
+from sara.retrieval import get_descriptor, knn_pairs
+from sara.retrieval.vlad import BowDescriptor, VladDescriptor, kmeans, vlad
 
 # ----------------------------------------------------------------------------------------
 # knn_pairs
@@ -77,13 +79,13 @@ def test_knn_pairs_scale_invariant_and_edge_cases() -> None:
 
 
 def clustered(rng: np.random.Generator, centre: np.ndarray, n: int, spread: float = 0.05) -> np.ndarray:
-    return retrieval.l2_normalize(centre + spread * rng.normal(size=(n, len(centre))))
+    return l2_normalize(centre + spread * rng.normal(size=(n, len(centre))))
 
 
 def test_vlad_of_identical_sets_is_identical_and_unit_norm() -> None:
     rng = np.random.default_rng(1)
-    codebook = retrieval.l2_normalize(rng.normal(size=(4, 8)))
-    desc = retrieval.l2_normalize(rng.normal(size=(50, 8)))
+    codebook = l2_normalize(rng.normal(size=(4, 8)))
+    desc = l2_normalize(rng.normal(size=(50, 8)))
     a, b = vlad(desc, codebook), vlad(desc[::-1].copy(), codebook)  # order does not matter
     assert a.shape == (32,) and a.dtype == np.float32
     np.testing.assert_allclose(a, b, atol=1e-6)
@@ -117,7 +119,7 @@ def test_kmeans_finds_separated_clusters_and_is_deterministic() -> None:
 
 def test_bow_tfidf_ignores_words_in_every_image() -> None:
     counts = np.array([[5, 1, 0], [5, 0, 1], [5, 1, 1]])
-    tfidf = retrieval.bow_tfidf(counts)
+    tfidf = retrieval.vlad.bow_tfidf(counts)
     assert np.all(tfidf[:, 0] == 0)  # idf = log(3/3) = 0
     np.testing.assert_allclose(np.linalg.norm(tfidf, axis=1), 1.0, atol=1e-6)
 
@@ -148,7 +150,7 @@ def write_grouped_features(path: Path, seed: int = 0) -> list[str]:
         for g, i in itertools.product(range(GROUPS), range(PER_GROUP)):
             seen = landmarks[g][rng.choice(150, 100, replace=False)]
             desc = seen + 0.01 * rng.uniform(size=seen.shape)
-            desc = np.clip(512 * retrieval.l2_normalize(desc), 0, 255).astype(np.uint8)
+            desc = np.clip(512 * l2_normalize(desc), 0, 255).astype(np.uint8)
             name = f"g{g}/img{i}.jpg"
             write_features(h5, name, Features(
                 keypoints=rng.uniform(0, 100, size=(100, 2)).astype(np.float32), descriptors=desc,
@@ -183,7 +185,7 @@ def test_vlad_backend_deterministic_with_seed(tmp_path: Path) -> None:
 
 def test_get_descriptor_registry() -> None:
     assert isinstance(get_descriptor("vlad"), retrieval.GlobalDescriptor)
-    with pytest.raises(ValueError, match="bow, vlad"):
+    with pytest.raises(ValueError, match="vlad, bow"):
         get_descriptor("netvlad")
 
 
@@ -202,7 +204,7 @@ def test_run_writes_global_h5_and_skips_when_up_to_date(tmp_path: Path, monkeypa
     assert retrieval.read_global(path)[0] == names  # rows stay in name order
 
     calls = []
-    monkeypatch.setattr(retrieval, "learn_codebook", lambda *a, **k: calls.append(1) or np.eye(8, 128))
+    monkeypatch.setattr(retrieval.vlad, "learn_codebook", lambda *a, **k: calls.append(1) or np.eye(8, 128))
     retrieval.run(RetrievalConfig(codebook_size=8, features_per_image=100, num_neighbors=5), features, names,
                   tmp_path / "out", progress=False)
     assert calls == []  # same descriptors: num_neighbors does not invalidate global.h5
@@ -255,9 +257,9 @@ def test_sampson_distance_hand_computed() -> None:
 
 def test_mutual_nearest_neighbors_and_consistent_count() -> None:
     rng = np.random.default_rng(0)
-    desc = retrieval.l2_normalize(rng.normal(size=(6, 32)))
+    desc = l2_normalize(rng.normal(size=(6, 32)))
     perm = np.array([3, 0, 5, 1, 2, 4])
-    matches = mutual_nearest_neighbors(desc, desc[perm])
+    matches, _ = mutual_nearest_neighbours(desc, desc[perm])
     assert sorted(map(tuple, matches.tolist())) == sorted((int(perm[j]), j) for j in range(6))
 
     points = np.column_stack([rng.uniform(-1, 1, 6), rng.uniform(-1, 1, 6), rng.uniform(4, 8, 6)])
@@ -282,6 +284,6 @@ def test_sum_by_label_matches_unbuffered_add() -> None:
     labels[labels == 4] = 5  # label 4 stays empty
     expected = np.zeros((6, 3), np.float32)
     np.add.at(expected, labels, x)
-    sums, counts = retrieval.sum_by_label(x, labels, 6)
+    sums, counts = retrieval.vlad.sum_by_label(x, labels, 6)
     np.testing.assert_allclose(sums, expected, atol=1e-5)
     assert counts.tolist() == np.bincount(labels, minlength=6).tolist() and counts[4] == 0

@@ -108,12 +108,12 @@ def test_other_image_set_or_settings_refused(tmp_path: Path, synthetic_scene):
     out = tmp_path / "out"
     conf = make_config("sift-offline", {"extract.max_num_features": 2000})
     run(conf, set_a, out, progress=False, stop_after="extract")
-    before = (out / "features.h5").read_bytes()
+    before = (out / "features-sift.h5").read_bytes()
     with pytest.raises(OutputMismatchError, match="other images or other extraction settings"):
         run(conf, set_b, out, progress=False, stop_after="extract")
     with pytest.raises(OutputMismatchError, match="--overwrite"):
         run(make_config("sift-offline"), set_a, out, progress=False, stop_after="extract")
-    assert (out / "features.h5").read_bytes() == before  # untouched
+    assert (out / "features-sift.h5").read_bytes() == before  # untouched
 
 
 def test_second_run_on_same_output_is_refused(tmp_path: Path, synthetic_scene):
@@ -133,7 +133,7 @@ def test_same_seed_same_pairs(tmp_path: Path, synthetic_scene):
     conf = make_config("sift-offline")
     run(conf, images, tmp_path / "one", progress=False, stop_after="pairs")
     shutil.copytree(tmp_path / "one", tmp_path / "two")
-    for name in ("pairs.txt", "scores.csv", "global.h5", ".sara/pairs.json"):
+    for name in ("pairs.txt", "scores.csv", "global-vlad.h5", ".sara/pairs.json"):
         (tmp_path / "two" / name).unlink()
     run(conf, images, tmp_path / "two", progress=False, stop_after="pairs")
     assert (tmp_path / "one" / "pairs.txt").read_text() == (tmp_path / "two" / "pairs.txt").read_text()

@@ -41,13 +41,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("images", type=Path, help="folder of images")
     p.add_argument("out", type=Path, help="output folder (created; re-running resumes)")
     p.add_argument("--pairs", default=None,
-                   help="pair source: sara (default), exhaustive, sequential, vocabtree, retrieval, or a pairs file")
+                   help="pair source: sara (default), exhaustive, sequential, vocab_tree, retrieval, or a pairs file")
     p.add_argument("--mapper", choices=["incremental", "global"], help="COLMAP mapper (default incremental)")
     p.add_argument("--gt", type=Path, help="ground-truth model folder: evaluate the result against it")
     _add_common(p)
     _add_output(p)
 
-    p = sub.add_parser("extract", help="SIFT features into OUT/features.h5 and OUT/database.db")
+    p = sub.add_parser("extract", help="local features into OUT/features-<backend>.h5 and OUT/database.db")
     p.add_argument("images", type=Path)
     p.add_argument("out", type=Path)
     _add_common(p)
@@ -56,7 +56,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("pairs", help="select the pairs to match (SARA by default) into OUT/pairs.txt")
     p.add_argument("images", type=Path)
     p.add_argument("out", type=Path)
-    p.add_argument("--method", default=None, help="sara (default), exhaustive, sequential, vocabtree, retrieval")
+    p.add_argument("--method", default=None, help="sara (default), exhaustive, sequential, vocab_tree, retrieval")
     _add_common(p)
     _add_output(p)
 
@@ -84,9 +84,20 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--num-images", type=int, default=24)
     _add_output(p)
 
-    from .bench import add_bench_parser
+    from .bench import DEFAULT_METHODS
 
-    add_bench_parser(sub, _add_output)
+    p = sub.add_parser("bench", help="compare pair sources on scenes with ground truth")
+    p.add_argument("scenes", nargs="+", type=Path, help="scene folders holding images/ and gt/")
+    p.add_argument("--out", type=Path, required=True, help="benchmark folder (created; re-running resumes)")
+    p.add_argument("--methods", default=",".join(DEFAULT_METHODS),
+                   help=f"comma-separated pair sources (default {','.join(DEFAULT_METHODS)})")
+    p.add_argument("--ablation", action="store_true",
+                   help="also run SARA with loops / anchors / weak-view reinforcement switched off and on")
+    p.add_argument("--preset", default="sift-offline", help="configuration preset (default: sift-offline)")
+    p.add_argument("-s", "--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                   help="override a configuration value for every method (repeatable)")
+    p.add_argument("--no-plot", action="store_true", help="skip bench.png")
+    _add_output(p)
     return parser
 
 
@@ -127,50 +138,33 @@ def _cmd_run(args: argparse.Namespace, stop_after: str | None = None) -> None:
         print(f"{info['num_pairs']} pairs ({100 * info['fraction_of_exhaustive']:.1f}% of exhaustive) "
               f"-> {args.out / 'pairs.txt'}")
     else:
-        print(f"features of {report.stages['images']['num_images']} images -> {args.out / 'features.h5'}")
+        info = report.stages["extract"]
+        print(f"features of {report.stages['images']['num_images']} images -> {args.out / info['features']}")
 
 
 def _cmd_match(args: argparse.Namespace) -> None:
-    from . import colmap, match
-    from .io import OutputLock
+    from .pipeline import match_only
 
-    db = args.out / "database.db"
-    if not db.exists():
-        raise FileNotFoundError(f"{db} not found: run `sara extract IMAGES {args.out}` first")
-    pairs = args.pairs or args.out / "pairs.txt"
-    with OutputLock(args.out):
-        colmap.send_log_to(args.out / "logs", verbose=args.verbose)
-        info = match.run(_config(args).match, pairs, db, args.out, progress=not args.quiet)
+    info = match_only(_config(args), args.out, args.pairs, progress=not args.quiet, verbose_colmap=args.verbose)
     print(f"matched {info['num_pairs']} pairs in {info['time_s']:.1f} s: {info['num_verified_pairs']} verified")
 
 
 def _cmd_map(args: argparse.Namespace) -> None:
-    from . import colmap, mapping
-    from .io import OutputLock, records
-    from .pipeline import load_run
+    from .pipeline import map_only
 
-    db = args.out / "database.db"
-    if not db.exists():
-        raise FileNotFoundError(f"{db} not found: run `sara extract` and `sara match` first")
-    images = args.images or Path(load_run(args.out)["images_root"])
-    conf = _config(args)
-    with OutputLock(args.out):
-        colmap.send_log_to(args.out / "logs", verbose=args.verbose)
-        upstream = (records.read_record(args.out, "match") or {}).get("key", "")
-        info = mapping.run(conf.map, db, images, args.out, seed=conf.seed, upstream_key=upstream,
-                           progress=not args.quiet)
+    info = map_only(_config(args), args.out, args.images, progress=not args.quiet, verbose_colmap=args.verbose)
     print(f"{info['num_components']} model(s) with {info['component_sizes']} images -> {args.out / 'sparse'}")
 
 
 def _cmd_evaluate(args: argparse.Namespace) -> None:
-    from .evaluate import format_table, run
+    from .evaluation import evaluate, format_table
 
     if not args.gt.exists():
         raise FileNotFoundError(f"ground-truth model folder not found: {args.gt}")
     model = args.model
     if (model / "sparse").is_dir():
         model = model / "sparse"
-    metrics = run(model, args.gt, args.json)
+    metrics = evaluate(model, args.gt, args.json)
     print(format_table(metrics))
 
 
@@ -178,6 +172,23 @@ def _cmd_demo(args: argparse.Namespace) -> None:
     from .demo import run_demo
 
     print(run_demo(args.out, num_images=args.num_images, progress=not args.quiet))
+
+
+def _cmd_bench(args: argparse.Namespace) -> None:
+    from . import bench
+    from .config import make_config, parse_override_args
+
+    overrides = parse_override_args(args.overrides)
+    if "pairs.method" in overrides:
+        raise ValueError("choose the pair sources with --methods, not -s pairs.method")
+    conf = make_config(args.preset, overrides)
+    result = bench.run_bench(args.scenes, args.out, conf, methods=bench.parse_methods(args.methods),
+                             ablation=args.ablation, progress=not args.quiet, plot=not args.no_plot)
+    print(bench.render_markdown(result.rows, bench.TABLE_COLUMNS, bench.TABLE_TITLE))
+    if args.ablation:
+        print(bench.render_markdown(result.ablation_rows, bench.ABLATION_COLUMNS, bench.ABLATION_TITLE,
+                                    note=bench.ABLATION_NOTE, first="Variant"))
+    print("results: " + ", ".join(str(p) for p in result.files))
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -190,9 +201,7 @@ def main(argv: list[str] | None = None) -> int:
         "run": _cmd_run, "extract": lambda a: _cmd_run(a, "extract"), "pairs": lambda a: _cmd_run(a, "pairs"),
         "match": _cmd_match, "map": _cmd_map, "evaluate": _cmd_evaluate, "demo": _cmd_demo,
     }
-    from .bench import cmd_bench
-
-    commands["bench"] = cmd_bench
+    commands["bench"] = _cmd_bench
     try:
         commands[args.command](args)
     except KeyboardInterrupt:

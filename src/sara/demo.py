@@ -8,10 +8,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from .bench import prepare_method_dir
 from .config import make_config
-from .pipeline import run
+from .pipeline import run, share_features
 from .synthetic import make_scene
+from .tables import markdown_table
 
 METHODS = ("sara", "exhaustive")
 ROWS = (
@@ -39,11 +39,9 @@ def run_demo(out_dir: Path, *, num_images: int = 24, progress: bool = True) -> s
     reports = {}
     for method in METHODS:  # the same features for both: only the pairs differ
         conf = make_config("sift-offline", {"pairs.method": method})
-        prepare_method_dir(features, out_dir / method)
+        share_features(features, out_dir / method)
         reports[method] = run(conf, images, out_dir / method, gt_dir=gt, progress=progress)
-    lines = [f"sara demo: synthetic scene of {num_images} images ({out_dir})", "",
-             "| | " + " | ".join(METHODS) + " |", "|---|" + "---:|" * len(METHODS)]
-    for label, get in ROWS:
-        lines.append(f"| {label} | " + " | ".join(get(reports[m]) for m in METHODS) + " |")
+    table = markdown_table(["", *METHODS], [[label, *(get(reports[m]) for m in METHODS)] for label, get in ROWS])
+    lines = [f"sara demo: synthetic scene of {num_images} images ({out_dir})", "", table]
     lines += ["", f"Model: {out_dir / 'sara' / 'sparse' / '0'}  (report: {out_dir / 'sara' / 'report.md'})"]
     return "\n".join(lines)

@@ -1,4 +1,5 @@
-"""Stage `extract`: SIFT features into the COLMAP database and an hloc-style `features.h5`."""
+"""Stage `extract`: local features of every image into `features-<backend>.h5` (hloc's layout) and
+the COLMAP database (images, cameras, keypoints), for any backend of `sara.features`."""
 
 from __future__ import annotations
 
@@ -12,7 +13,8 @@ from tqdm import tqdm
 from . import colmap
 from .io import records
 from .config import ExtractConfig
-from .io.h5 import Features, write_features
+from .features import LocalFeatures, features_file_name, make_backend
+from .io.h5 import Features, has_features, write_features
 from .io.images import ImageSet
 from .io import atomic_path, fingerprint
 
@@ -20,7 +22,6 @@ logger = logging.getLogger(__name__)
 
 STAGE = "extract"
 DB_NAME = "database.db"
-FEATURES_NAME = "features.h5"
 
 
 class OutputMismatchError(ValueError):
@@ -76,13 +77,18 @@ def _check_existing_database(db_path: Path, images: ImageSet) -> bool:
 
 def run(conf: ExtractConfig, images: ImageSet, out_dir: Path, *, overwrite: bool = False,
         progress: bool = True) -> Path:
-    """Extract SIFT for every image; returns the path of `features.h5`. Resumes an interrupted run."""
+    """Local features of every image; returns the path of `features-<backend>.h5`.
+
+    The COLMAP database receives the images, their cameras and the keypoints. Resumes an
+    interrupted run: images already done are not extracted again.
+    """
     out_dir = Path(out_dir)
-    db_path, h5_path = out_dir / DB_NAME, out_dir / FEATURES_NAME
+    db_path, h5_path = out_dir / DB_NAME, out_dir / features_file_name(conf)
     key = _key(images, conf)
     if not overwrite and records.is_done(out_dir, STAGE, key) and db_path.exists() and h5_path.exists():
         logger.info("extract: features up to date, skipping")
         return h5_path
+    backend = make_backend(conf)  # loads weights: a missing file fails here, before any work
     record = records.read_record(out_dir, STAGE)
     if overwrite or (record is not None and record.get("key") != key):
         if record is not None and record.get("key") != key and not overwrite and db_path.exists():
@@ -92,6 +98,7 @@ def run(conf: ExtractConfig, images: ImageSet, out_dir: Path, *, overwrite: bool
             )
         db_path.unlink(missing_ok=True)
         h5_path.unlink(missing_ok=True)
+        _partial(h5_path).unlink(missing_ok=True)
     if db_path.exists() and not _check_existing_database(db_path, images):
         db_path.unlink()  # images were being imported when the run stopped: importing is cheap
     records.mark_started(out_dir, STAGE, key)
@@ -101,44 +108,101 @@ def run(conf: ExtractConfig, images: ImageSet, out_dir: Path, *, overwrite: bool
         with atomic_path(db_path) as tmp:
             tmp.unlink()
             colmap.create_database(tmp)
-            colmap.import_images(tmp, images.root, images.names, camera_mode=camera_mode, camera_model=conf.camera_model,
-                                 camera_params=conf.camera_params,
+            colmap.import_images(tmp, images.root, images.names, camera_mode=camera_mode,
+                                 camera_model=conf.camera_model, camera_params=conf.camera_params,
                                  default_focal_length_factor=conf.default_focal_length_factor)
-    _extract_missing(db_path, images, conf, progress)
-    info = _export_h5(db_path, h5_path, images, progress)
-    info["camera_mode"] = camera_mode
+    if hasattr(backend, "extract_to_database"):
+        todo = sorted(set(images.names) - colmap.images_with_keypoints(db_path))
+        if todo:
+            backend.extract_to_database(db_path, images, todo, progress=progress)
+        counts = _export_h5(db_path, h5_path, images, progress)
+    else:
+        counts = _extract_to_h5(backend, conf, images, h5_path, progress)
+        _import_keypoints(db_path, h5_path, images.names)
+    info = _summary(counts)
+    info.update(camera_mode=camera_mode, backend=conf.backend, features=h5_path.name)
     records.mark_done(out_dir, STAGE, key, info)
     return h5_path
 
 
-def _extract_missing(db_path: Path, images: ImageSet, conf: ExtractConfig, progress: bool) -> None:
-    with colmap.open_database(db_path) as db:
-        todo = [im.name for im in db.read_all_images() if not db.exists_keypoints(im.image_id)]
-    todo = sorted(todo)
-    if not todo:
+def _partial(h5_path: Path) -> Path:
+    return h5_path.with_name(h5_path.name + ".partial")
+
+
+def load_image(path: Path, max_size: int) -> tuple[np.ndarray, tuple[float, float]]:
+    """(H, W, 3) uint8 RGB pixels as stored (no EXIF rotation, like COLMAP), the longer side at most
+    `max_size`; and the (x, y) factors that take its pixel coordinates back to the full image."""
+    from PIL import Image
+
+    with Image.open(path) as im:
+        im = im.convert("RGB")
+        width, height = im.size
+        scale = min(1.0, max_size / max(width, height))
+        if scale < 1.0:
+            im = im.resize((max(1, round(width * scale)), max(1, round(height * scale))), Image.Resampling.BICUBIC)
+        pixels = np.asarray(im, dtype=np.uint8)
+    return pixels, (width / pixels.shape[1], height / pixels.shape[0])
+
+
+def to_full_resolution(xy: np.ndarray, factors: tuple[float, float]) -> np.ndarray:
+    """hloc-convention pixel coordinates of a resized image -> those of the full image."""
+    return ((np.asarray(xy, np.float64) + 0.5) * np.asarray(factors) - 0.5).astype(np.float32)
+
+
+def _extract_to_h5(backend: LocalFeatures, conf: ExtractConfig, images: ImageSet, h5_path: Path,
+                   progress: bool) -> dict[str, int]:
+    """Run a pixel backend over every image into `h5_path`, resumably (a `.partial` file grows
+    image by image and is renamed when complete). Returns keypoints per image."""
+    partial = _partial(h5_path)
+    try:
+        with h5py.File(partial, "a") as h5:
+            done = {n for n in images.names if has_features(h5, n)}
+    except OSError:  # cut short while being written: start over
+        partial.unlink(missing_ok=True)
+        done = set()
+    todo = [n for n in images.names if n not in done]
+    with h5py.File(partial, "a") as h5, tqdm(total=len(images.names), initial=len(done),
+                                              desc=f"extract {backend.name}", unit="img",
+                                              disable=not progress) as bar:
+        for name in todo:
+            pixels, factors = load_image(images.root / name, conf.max_image_size)
+            found = backend.extract(pixels)
+            write_features(h5, name, Features(
+                keypoints=to_full_resolution(found.xy, factors), descriptors=found.descriptors,
+                scores=found.scores, image_size=images.sizes[name]))
+            h5.flush()
+            bar.update(1)
+        counts = {n: int(h5[n]["keypoints"].shape[0]) for n in images.names}
+    partial.replace(h5_path)
+    return counts
+
+
+def _import_keypoints(db_path: Path, h5_path: Path, names: list[str]) -> None:
+    """Put the keypoints of `h5_path` into the database (COLMAP's pixel convention)."""
+    missing = set(names) - colmap.images_with_keypoints(db_path)
+    if not missing:
         return
-    chunk = max(2, min(16, len(todo) // 20 or 2))
-    with tqdm(total=len(todo), desc="extract SIFT", unit="img", disable=not progress) as bar:
-        for start in range(0, len(todo), chunk):
-            names = todo[start:start + chunk]
-            colmap.extract_sift(db_path, images.root, names, max_image_size=conf.max_image_size,
-                                max_num_features=conf.max_num_features, camera_model=conf.camera_model,
-                                camera_params=conf.camera_params, num_threads=conf.num_threads)
-            bar.update(len(names))
+    with h5py.File(h5_path, "r") as h5:
+        keypoints = {n: colmap.hloc_to_colmap_keypoints(h5[n]["keypoints"][()]) for n in sorted(missing)}
+    colmap.write_keypoints(db_path, keypoints)
 
 
-def _export_h5(db_path: Path, h5_path: Path, images: ImageSet, progress: bool) -> dict:
-    """Copy the database's features into `features.h5`; returns per-collection counts."""
+def _export_h5(db_path: Path, h5_path: Path, images: ImageSet, progress: bool) -> dict[str, int]:
+    """Copy the database's SIFT features into `h5_path`; returns keypoints per image."""
     num_kp: dict[str, int] = {}
     with colmap.open_database(db_path) as db, atomic_path(h5_path) as tmp:
         with h5py.File(tmp, "w") as h5:
-            for im in tqdm(sorted(db.read_all_images(), key=lambda im: im.name), desc="write features.h5",
+            for im in tqdm(sorted(db.read_all_images(), key=lambda im: im.name), desc=f"write {h5_path.name}",
                            unit="img", disable=not progress):
                 kp, scale, desc = colmap.read_sift(db, im.image_id)
                 write_features(h5, im.name, Features(
                     keypoints=colmap.colmap_to_hloc_keypoints(kp), descriptors=desc,
                     scores=scale, image_size=images.sizes[im.name]))
                 num_kp[im.name] = len(kp)
+    return num_kp
+
+
+def _summary(num_kp: dict[str, int]) -> dict:
     no_features = sorted(n for n, k in num_kp.items() if k == 0)
     for name in no_features:
         logger.warning("no features found in %s (flat or featureless image): it cannot be registered", name)

@@ -23,7 +23,9 @@ import numpy as np
 from tqdm import tqdm
 
 from . import colmap
+from .descriptors import l2_normalize, mutual_nearest_neighbours
 from .io.h5 import read_features
+from .scoring.twoview import sampson_distance, skew
 from .io import fingerprint, read_json, write_json_atomic
 
 logger = logging.getLogger(__name__)
@@ -40,11 +42,6 @@ class GtView:
     size: tuple[int, int]  # (width, height) of the gt camera, pixels
 
 
-def skew(v: np.ndarray) -> np.ndarray:
-    """(3,) -> (3, 3) cross-product matrix: skew(a) @ b == cross(a, b)."""
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
-
-
 def fundamental_from_poses(view1: GtView, view2: GtView) -> np.ndarray:
     """(3, 3) F with x2^T F x1 = 0 for homogeneous pixels x1 in view 1 and x2 in view 2."""
     r_rel = view2.R @ view1.R.T
@@ -53,48 +50,9 @@ def fundamental_from_poses(view1: GtView, view2: GtView) -> np.ndarray:
     return np.linalg.inv(view2.K).T @ essential @ np.linalg.inv(view1.K)
 
 
-def sampson_distance_px(F: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
-    """(N,) Sampson distance (pixels: the square root of the Sampson error) of matches x1 <-> x2.
-
-    x1, x2: (N, 2) pixel coordinates in views 1 and 2; F maps view 1 to view 2.
-    """
-    h1 = np.concatenate([np.asarray(x1, np.float64), np.ones((len(x1), 1))], axis=1)
-    h2 = np.concatenate([np.asarray(x2, np.float64), np.ones((len(x2), 1))], axis=1)
-    f_x1 = h1 @ F.T  # rows: F @ x1
-    ft_x2 = h2 @ F  # rows: F^T @ x2
-    numerator = np.einsum("ij,ij->i", h2, f_x1) ** 2
-    denominator = f_x1[:, 0] ** 2 + f_x1[:, 1] ** 2 + ft_x2[:, 0] ** 2 + ft_x2[:, 1] ** 2
-    return np.sqrt(numerator / np.maximum(denominator, 1e-300))
-
-
-def mutual_nearest_neighbors(desc1: np.ndarray, desc2: np.ndarray) -> np.ndarray:
-    """(M, 2) int64 index pairs (i, j) where desc1[i] and desc2[j] are each other's nearest neighbour.
-
-    desc1, desc2: (N1, D), (N2, D) float32 rows with unit norm (similarity = dot product).
-    """
-    if len(desc1) == 0 or len(desc2) == 0:
-        return np.zeros((0, 2), dtype=np.int64)
-    sim = desc1 @ desc2.T
-    nn12 = np.argmax(sim, axis=1)
-    nn21 = np.argmax(sim, axis=0)
-    idx1 = np.flatnonzero(nn21[nn12] == np.arange(len(desc1)))
-    return np.stack([idx1, nn12[idx1]], axis=1).astype(np.int64)
-
-
 def read_gt_views(gt_dir: Path) -> dict[str, GtView]:
     """name -> GtView from a COLMAP model folder (PINHOLE cameras expected; others use their K)."""
-    rec = colmap.read_model(gt_dir)
-    views = {}
-    for image in rec.images.values():
-        cam = rec.cameras[image.camera_id]
-        pose = image.cam_from_world()
-        views[image.name] = GtView(
-            K=np.asarray(cam.calibration_matrix(), dtype=np.float64),
-            R=np.asarray(pose.rotation.matrix(), dtype=np.float64),
-            t=np.asarray(pose.translation, dtype=np.float64).reshape(3),
-            size=(int(cam.width), int(cam.height)),
-        )
-    return views
+    return {name: GtView(K=K, R=R, t=t, size=size) for name, (K, R, t, size) in colmap.cameras_and_poses(gt_dir).items()}
 
 
 def _load_matching_features(features_path: Path, name: str, view: GtView,
@@ -105,18 +63,16 @@ def _load_matching_features(features_path: Path, name: str, view: GtView,
     width, height = feats.image_size
     if (width, height) != view.size:  # images and gt at different resolutions: scale the pixels
         xy = xy * np.array([view.size[0] / width, view.size[1] / height])
-    desc = np.asarray(feats.descriptors, dtype=np.float32)
-    desc /= np.maximum(np.linalg.norm(desc, axis=1, keepdims=True), 1e-12)
-    return xy, desc
+    return xy, l2_normalize(feats.descriptors, axis=1)
 
 
 def count_consistent_matches(xy1: np.ndarray, desc1: np.ndarray, xy2: np.ndarray, desc2: np.ndarray,
                              F: np.ndarray, max_epipolar_px: float) -> int:
     """Number of mutual-NN matches whose Sampson distance to F is below `max_epipolar_px`."""
-    matches = mutual_nearest_neighbors(desc1, desc2)
+    matches, _ = mutual_nearest_neighbours(desc1, desc2)
     if len(matches) == 0:
         return 0
-    dist = sampson_distance_px(F, xy1[matches[:, 0]], xy2[matches[:, 1]])
+    dist = sampson_distance(F, xy1[matches[:, 0]], xy2[matches[:, 1]])
     return int((dist < max_epipolar_px).sum())
 
 

@@ -23,14 +23,15 @@ STAGE = "map"
 
 
 def run(conf: MapConfig, db_path: Path, images_root: Path, out_dir: Path, *, seed: int = 0,
-        upstream_key: str = "", progress: bool = True) -> dict:
-    """Map the matched database; returns component sizes and the time taken."""
+        upstream_key: str = "", progress: bool = True) -> Path:
+    """Map the matched database into `out_dir/sparse/N`; returns `sparse/` (component sizes and the
+    time taken go into the stage record)."""
     out_dir = Path(out_dir)
     sparse = out_dir / "sparse"
     key = state_key(conf, seed, upstream_key)
     if records.is_done(out_dir, STAGE, key) and sparse.exists():
         logger.info("map: model up to date, skipping")
-        return records.done_info(out_dir, STAGE)
+        return sparse
     records.mark_started(out_dir, STAGE, key)
     tmp = out_dir / ".sara" / "sparse.partial"
     shutil.rmtree(tmp, ignore_errors=True)
@@ -50,7 +51,7 @@ def run(conf: MapConfig, db_path: Path, images_root: Path, out_dir: Path, *, see
     else:
         raise ValueError(f"unknown mapper {conf.mapper!r}; choose incremental or global")
     elapsed = time.perf_counter() - tic
-    sizes = _renumber_by_size(tmp, recs)
+    sizes = colmap.write_models_by_size(tmp, recs)
     if sparse.exists():
         shutil.rmtree(sparse)
     tmp.rename(sparse)
@@ -61,25 +62,10 @@ def run(conf: MapConfig, db_path: Path, images_root: Path, out_dir: Path, *, see
         logger.warning("map: no model could be built (too few verified matches)")
     elif len(sizes) > 1:
         logger.warning("map: the scene split into %d models of %s images", len(sizes), sizes)
-    return info
+    return sparse
 
 
 def state_key(conf: MapConfig, seed: int, upstream_key: str) -> str:
     from .io import fingerprint
 
     return fingerprint({"conf": conf.__dict__, "seed": seed, "upstream": upstream_key})
-
-
-def _renumber_by_size(folder: Path, recs: dict) -> list[int]:
-    """Rewrite the numbered model folders so that 0 is the largest; returns registered counts."""
-    order = sorted(recs.items(), key=lambda kv: (-kv[1].num_reg_images(), kv[0]))
-    for sub in list(folder.iterdir()):
-        if sub.is_dir():
-            shutil.rmtree(sub)
-    sizes = []
-    for new_index, (_, rec) in enumerate(order):
-        dst = folder / str(new_index)
-        dst.mkdir()
-        rec.write(str(dst))
-        sizes.append(int(rec.num_reg_images()))
-    return sizes

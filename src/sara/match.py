@@ -1,4 +1,5 @@
-"""Stage `match`: COLMAP's SIFT matching and geometric verification of the pairs in a pairs file."""
+"""Stage `match`: full matching of the pairs of a pairs file with any matcher of `sara.matchers`,
+then COLMAP's geometric verification, into the COLMAP database (so mapping is the same for all)."""
 
 from __future__ import annotations
 
@@ -15,7 +16,9 @@ from . import colmap
 from .io import records
 from .config import MatchConfig
 from .io import fingerprint, read_json, write_json_atomic
+from .io.h5 import FeatureCache
 from .io.pairs import Pair, read_pairs, write_pairs
+from .matchers import make_matcher, resolve_name
 
 logger = logging.getLogger(__name__)
 
@@ -24,9 +27,10 @@ CONF_RECORD = "match-settings"
 PROGRESS_RECORD = "match-progress"
 
 
-def run(conf: MatchConfig, pairs_path: Path, db_path: Path, out_dir: Path, *,
-        progress: bool = True) -> dict:
-    """Match every pair of `pairs_path` into the database; returns counts and the time taken.
+def run(conf: MatchConfig, pairs_path: Path, db_path: Path, out_dir: Path, *, features_path: Path,
+        features_backend: str = "sift", progress: bool = True) -> Path:
+    """Match every pair of `pairs_path` into the database; returns the database path (counts and
+    the time taken go into the stage record).
 
     The database ends up holding the matches of exactly these pairs: matches left by another pairs
     file are removed first. An interrupted run resumes (COLMAP skips pairs already matched).
@@ -35,11 +39,14 @@ def run(conf: MatchConfig, pairs_path: Path, db_path: Path, out_dir: Path, *,
     restore_names(db_path, out_dir)  # after a run killed while names were aliased
     names = colmap.database_images(db_path)
     pairs = read_pairs(pairs_path, known_names=names)
-    key = fingerprint({"pairs": pairs, "conf": conf.__dict__})
+    matcher_name = resolve_name(conf, features_backend)
+    key = fingerprint({"pairs": pairs, "conf": {**conf.__dict__, "backend": matcher_name},
+                       "features": Path(features_path).name})
     if records.is_done(out_dir, STAGE, key):
         logger.info("match: %d pairs already matched, skipping", len(pairs))
-        return records.done_info(out_dir, STAGE)
-    conf_key = fingerprint(conf.__dict__)
+        return Path(db_path)
+    matcher = make_matcher(conf, features_backend)  # loads weights: fails here, before any work
+    conf_key = fingerprint({**conf.__dict__, "backend": matcher_name, "features": Path(features_path).name})
     if not records.is_done(out_dir, CONF_RECORD, conf_key):
         _clear_matches(db_path)  # a fresh start, or matches made with other settings
         records.mark_done(out_dir, CONF_RECORD, conf_key)
@@ -53,23 +60,29 @@ def run(conf: MatchConfig, pairs_path: Path, db_path: Path, out_dir: Path, *,
     earlier_s = float(progress_record.get("info", {}).get("time_s", 0.0)) if progress_record.get("key") == key else 0.0
     tic = time.perf_counter()
     chunk_path = out_dir / ".sara" / "match_chunk.txt"
-    with tqdm(total=len(pairs), initial=len(pairs) - len(todo), desc="match pairs", unit="pair",
+    reader = FeatureCache(Path(features_path))
+    with tqdm(total=len(pairs), initial=len(pairs) - len(todo), desc=f"match pairs ({matcher.name})", unit="pair",
               disable=not progress) as bar, space_free_names(db_path, out_dir) as alias:
         for start in range(0, len(todo), conf.chunk_size):
             chunk = todo[start:start + conf.chunk_size]
+            if not hasattr(matcher, "match_in_database"):
+                colmap.write_matches(db_path, {(alias.get(a, a), alias.get(b, b)): matcher.match(reader.get(a), reader.get(b))[0]
+                                               for a, b in chunk})
             write_pairs(chunk_path, [(alias.get(a, a), alias.get(b, b)) for a, b in chunk])
-            colmap.match_pairs(db_path, chunk_path, max_ratio=conf.max_ratio, max_distance=conf.max_distance,
-                               cross_check=conf.cross_check, min_num_inliers=conf.min_num_inliers,
-                               num_threads=conf.num_threads)
+            if hasattr(matcher, "match_in_database"):
+                matcher.match_in_database(db_path, chunk_path)
+            else:
+                colmap.verify_pairs(db_path, chunk_path, min_num_inliers=conf.min_num_inliers)
             bar.update(len(chunk))
             records.mark_done(out_dir, PROGRESS_RECORD, key, {"time_s": earlier_s + time.perf_counter() - tic})
+    reader.close()
     chunk_path.unlink(missing_ok=True)
     elapsed = earlier_s + time.perf_counter() - tic
-    info = {"num_pairs": len(pairs), "num_matched_now": len(todo), "time_s": elapsed,
+    info = {"num_pairs": len(pairs), "num_matched_now": len(todo), "time_s": elapsed, "matcher": matcher.name,
             **verification_stats(db_path, conf.min_num_inliers)}
     records.mark_done(out_dir, STAGE, key, info)
     logger.info("match: %d pairs in %.1f s, %d verified", len(pairs), elapsed, info["num_verified_pairs"])
-    return info
+    return Path(db_path)
 
 
 ALIASES_NAME = "name_aliases.json"

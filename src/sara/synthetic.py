@@ -5,7 +5,7 @@ from __future__ import annotations
 import shutil
 from pathlib import Path
 
-import pycolmap
+from . import colmap
 
 
 def make_scene(out_dir: Path, *, num_images: int = 24, num_points: int = 300, width: int = 1024,
@@ -21,17 +21,6 @@ def make_scene(out_dir: Path, *, num_images: int = 24, num_points: int = 300, wi
     for folder in (images, gt):
         shutil.rmtree(folder, ignore_errors=True)
         folder.mkdir(parents=True)
-    pycolmap.set_random_seed(seed)
-    opts = pycolmap.SyntheticDatasetOptions()
-    opts.num_rigs = 1
-    opts.num_cameras_per_rig = 1
-    opts.num_frames_per_rig = num_images
-    opts.num_points3D = num_points
-    opts.camera_width, opts.camera_height = width, height
-    opts.camera_model_id = pycolmap.CameraModelId.PINHOLE
-    focal = 1.2 * max(width, height)
-    opts.camera_params = [focal, focal, width / 2, height / 2]
-    rec = pycolmap.synthesize_dataset(opts)
-    pycolmap.synthesize_images(pycolmap.SyntheticImageOptions(), rec, str(images))
-    rec.write_text(str(gt))
+    colmap.synthesize_scene(images, gt, num_images=num_images, num_points=num_points, width=width, height=height,
+                            seed=seed)
     return images, gt

@@ -9,6 +9,7 @@ from __future__ import annotations
 import contextlib
 import logging
 from collections.abc import Callable, Iterator
+from typing import Any
 from pathlib import Path
 
 import numpy as np
@@ -72,6 +73,22 @@ def open_database(path: Path) -> Iterator[pycolmap.Database]:
         db.close()
 
 
+def copy_database(src: Path, dst: Path) -> None:
+    """Copy a COLMAP database consistently (its WAL included) through SQLite's backup API."""
+    import sqlite3
+
+    from ..io import atomic_path
+
+    with atomic_path(dst) as tmp:
+        source = sqlite3.connect(f"file:{src}?mode=ro", uri=True)
+        target = sqlite3.connect(tmp)
+        try:
+            source.backup(target)
+        finally:
+            target.close()
+            source.close()
+
+
 def create_database(path: Path) -> None:
     pycolmap.Database.open(str(path)).close()
 
@@ -104,6 +121,34 @@ def extract_sift(db_path: Path, image_dir: Path, names: list[str], *, max_image_
     )
 
 
+def sift_of_image(image: np.ndarray, *, max_num_features: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """COLMAP's SIFT of one (H, W, 3) or (H, W) uint8 image: as :func:`read_sift`."""
+    gray = np.asarray(image, dtype=np.float32)
+    if gray.ndim == 3:
+        gray = gray @ np.array([0.299, 0.587, 0.114], dtype=np.float32)
+    opts = pycolmap.SiftExtractionOptions()
+    opts.max_num_features = max_num_features
+    sift = pycolmap.Sift(opts, device=pycolmap.Device.cpu)
+    kp, desc = sift.extract(gray / 255.0)
+    kp = np.asarray(kp, dtype=np.float32)
+    return _split_keypoints(kp, np.asarray(desc))
+
+
+def write_keypoints(db_path: Path, keypoints: dict[str, np.ndarray]) -> None:
+    """Store (N, 2) float32 keypoints (COLMAP's pixel convention) of images already in the database."""
+    with open_database(db_path) as db:
+        ids = {im.name: im.image_id for im in db.read_all_images()}
+        for name, xy in keypoints.items():
+            if db.exists_keypoints(ids[name]):
+                continue
+            db.write_keypoints(ids[name], np.ascontiguousarray(xy, dtype=np.float32).reshape(-1, 2))
+
+
+def images_with_keypoints(db_path: Path) -> set[str]:
+    with open_database(db_path) as db:
+        return {im.name for im in db.read_all_images() if db.exists_keypoints(im.image_id)}
+
+
 def database_images(db_path: Path) -> dict[str, int]:
     """name -> image_id of the images in a database."""
     with open_database(db_path) as db:
@@ -114,6 +159,10 @@ def read_sift(db: pycolmap.Database, image_id: int) -> tuple[np.ndarray, np.ndar
     """Keypoints (N, 2) float32 COLMAP pixels, scales (N,) float32 px, descriptors (N, 128) uint8."""
     kp = np.asarray(db.read_keypoints(image_id), dtype=np.float32)
     desc = np.asarray(db.read_descriptors(image_id).data)
+    return _split_keypoints(kp, desc)
+
+
+def _split_keypoints(kp: np.ndarray, desc: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     if len(kp) == 0:
         return np.zeros((0, 2), np.float32), np.zeros(0, np.float32), np.zeros((0, 128), np.uint8)
     if kp.shape[1] >= 6:  # affine shape a11 a12 a21 a22: scale = sqrt(|det|)
@@ -143,6 +192,26 @@ def match_pairs(db_path: Path, pairs_path: Path, *, max_ratio: float, max_distan
         pairing_options=pycolmap.ImportedPairingOptions(match_list_path=str(pairs_path)),
         verification_options=vopts, device=pycolmap.Device.cpu,
     )
+
+
+def write_matches(db_path: Path, matches: dict[tuple[str, str], np.ndarray]) -> None:
+    """Store (K, 2) index matches of image pairs (by name), replacing unverified ones left by a killed run."""
+    with open_database(db_path) as db:
+        ids = {im.name: im.image_id for im in db.read_all_images()}
+        for (name0, name1), m in matches.items():
+            id0, id1 = ids[name0], ids[name1]
+            if db.exists_two_view_geometry(id0, id1):
+                db.delete_two_view_geometry(id0, id1)
+            if db.exists_matches(id0, id1):
+                db.delete_matches(id0, id1)
+            db.write_matches(id0, id1, np.ascontiguousarray(m, dtype=np.uint32).reshape(-1, 2))
+
+
+def verify_pairs(db_path: Path, pairs_path: Path, *, min_num_inliers: int) -> None:
+    """COLMAP's geometric verification of the stored matches of the pairs in a pairs file."""
+    opts = pycolmap.TwoViewGeometryOptions()
+    opts.min_num_inliers = min_num_inliers
+    pycolmap.verify_matches(str(db_path), str(pairs_path), options=opts)
 
 
 def verified_image_pairs(db: pycolmap.Database) -> list[tuple[int, int, int]]:
@@ -185,6 +254,19 @@ def global_mapping(db_path: Path, image_dir: Path, out_dir: Path, *, seed: int, 
 
 def read_model(path: Path) -> pycolmap.Reconstruction:
     return pycolmap.Reconstruction(str(path))
+
+
+def has_model(model_dir: Path) -> bool:
+    """Whether a folder holds a COLMAP model (binary or text)."""
+    return any((Path(model_dir) / f"{kind}.{ext}").is_file() for kind in ("cameras", "images") for ext in ("bin", "txt"))
+
+
+def registered_images(model_dir: Path) -> set[str]:
+    """Names of the posed images of a model folder (empty when there is no model)."""
+    if not has_model(model_dir):
+        return set()
+    rec = read_model(model_dir)
+    return {im.name for im in rec.images.values() if im.has_pose}
 
 
 def cameras_by_image(db_path: Path) -> dict[str, pycolmap.Camera]:
@@ -246,3 +328,159 @@ def vocab_tree_retrieval(db_path: Path, tree_path: Path, num_images: int, *,
         names = {im.image_id: im.name for im in db.read_all_images()}
         id_pairs = pycolmap.VocabTreePairGenerator(opts, db).all_pairs()
     return [(names[int(a)], names[int(b)]) for a, b in id_pairs]
+
+
+# ---------------------------------------------------------------------------------------------
+# Models as plain arrays (evaluation): poses are cam_from_world, (R (3, 3), t (3,)) float64
+# ---------------------------------------------------------------------------------------------
+
+
+
+def read_reconstruction(model_dir: Path) -> pycolmap.Reconstruction:
+    """Read a COLMAP model folder (binary or text).
+
+    Raises:
+        FileNotFoundError: the folder does not exist or holds no COLMAP model.
+    """
+    model_dir = Path(model_dir)
+    if not model_dir.is_dir():
+        raise FileNotFoundError(f"Model folder does not exist: {model_dir}")
+    if not has_model(model_dir):
+        raise FileNotFoundError(
+            f"No COLMAP model in {model_dir}: expected cameras/images/points3D .bin or .txt files"
+        )
+    try:
+        return pycolmap.Reconstruction(model_dir)
+    except ValueError as error:  # pycolmap reports missing or unreadable files this way
+        raise FileNotFoundError(
+            f"Could not read a COLMAP model from {model_dir}: {error}"
+        ) from error
+
+
+def pose_of_image(image: Any) -> tuple[np.ndarray, np.ndarray]:
+    """(R_cam_from_world (3, 3), t_cam_from_world (3,)) float64 of a posed pycolmap Image."""
+    cam_from_world = image.cam_from_world()  # a method in pycolmap 4.x, not a property
+    rotation = np.asarray(cam_from_world.rotation.matrix(), dtype=np.float64)
+    translation = np.asarray(cam_from_world.translation, dtype=np.float64).reshape(3)
+    return rotation, translation
+
+
+def poses_of(rec: pycolmap.Reconstruction) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """name -> (R_cam_from_world (3, 3), t_cam_from_world (3,)) for every image with a pose."""
+    return {image.name: pose_of_image(image) for image in rec.images.values() if image.has_pose}
+
+
+def _image_reprojection_errors_px(
+    rec: pycolmap.Reconstruction, image: Any, point_ids_sorted: np.ndarray, xyz_sorted: np.ndarray
+) -> np.ndarray:
+    """Reprojection errors (K,) float64 in pixels of the K observations of one posed image.
+
+    Points behind the camera give NaN.
+    """
+    points2d = image.get_observation_points2D()
+    if len(points2d) == 0:
+        return np.zeros(0)
+    xy_observed = np.array([p.xy for p in points2d], dtype=np.float64).reshape(-1, 2)
+    point3d_ids = np.array([p.point3D_id for p in points2d], dtype=np.int64)
+    xyz_world = xyz_sorted[np.searchsorted(point_ids_sorted, point3d_ids)]
+    rotation, translation = pose_of_image(image)
+    xyz_cam = xyz_world @ rotation.T + translation
+    xy_projected = np.asarray(rec.cameras[image.camera_id].img_from_cam(xyz_cam), dtype=np.float64)
+    return np.linalg.norm(xy_projected.reshape(-1, 2) - xy_observed, axis=1)
+
+
+def reprojection_errors_px(rec: pycolmap.Reconstruction) -> np.ndarray:
+    """Reprojection error of every observation of every 3D point, in pixels.
+
+    Each 3D point is projected with the pose and camera of every image in its track and compared
+    with the observed keypoint. Vectorised per image.
+
+    Returns:
+        (M,) float64, one entry per observation (M = total track length); NaN where the point
+        lies behind the camera.
+    """
+    if rec.num_points3D() == 0:
+        return np.zeros(0)
+    point_ids = np.fromiter(rec.points3D.keys(), dtype=np.int64, count=rec.num_points3D())
+    xyz = np.array([point.xyz for point in rec.points3D.values()], dtype=np.float64)
+    order = np.argsort(point_ids)
+    point_ids_sorted, xyz_sorted = point_ids[order], xyz[order]
+    errors = [
+        _image_reprojection_errors_px(rec, image, point_ids_sorted, xyz_sorted)
+        for image in rec.images.values()
+        if image.has_pose
+    ]
+    return np.concatenate(errors) if errors else np.zeros(0)
+
+
+def load_poses(model_dir: Path) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Poses of the registered images of a COLMAP model (text or binary).
+
+    Returns:
+        name -> (R_cam_from_world (3, 3) float64, t_cam_from_world (3,) float64); images
+        without a pose are left out.
+
+    Raises:
+        FileNotFoundError: the folder does not exist or holds no model.
+    """
+    return poses_of(read_reconstruction(Path(model_dir)))
+
+
+def model_structure(rec: pycolmap.Reconstruction) -> tuple[int, int, np.ndarray]:
+    """(3D points, observations, reprojection error of every observation in pixels (NaN behind))."""
+    return rec.num_points3D(), rec.compute_num_observations(), reprojection_errors_px(rec)
+
+
+def num_registered(rec: pycolmap.Reconstruction) -> int:
+    return int(rec.num_reg_images())
+
+
+def cameras_and_poses(model_dir: Path) -> dict[str, tuple[np.ndarray, np.ndarray, np.ndarray, tuple[int, int]]]:
+    """name -> (K (3, 3), R (3, 3), t (3,), (width, height)) of every posed image of a model (gt models)."""
+    rec = read_reconstruction(Path(model_dir))
+    out = {}
+    for image in rec.images.values():
+        if not image.has_pose:
+            continue
+        cam = rec.cameras[image.camera_id]
+        R, t = pose_of_image(image)
+        out[image.name] = (np.asarray(cam.calibration_matrix(), dtype=np.float64), R, t, (int(cam.width), int(cam.height)))
+    return out
+
+
+def write_models_by_size(folder: Path, recs: dict[int, pycolmap.Reconstruction]) -> list[int]:
+    """Write mapper output as `folder/0, 1, ...`, 0 the largest; returns registered images per model."""
+    import shutil
+
+    order = sorted(recs.items(), key=lambda kv: (-kv[1].num_reg_images(), kv[0]))
+    for sub in list(Path(folder).iterdir()):
+        if sub.is_dir():
+            shutil.rmtree(sub)
+    sizes = []
+    for new_index, (_, rec) in enumerate(order):
+        dst = Path(folder) / str(new_index)
+        dst.mkdir()
+        rec.write(str(dst))
+        sizes.append(int(rec.num_reg_images()))
+    return sizes
+
+
+def synthesize_scene(images_dir: Path, gt_dir: Path, *, num_images: int, num_points: int, width: int,
+                     height: int, seed: int) -> None:
+    """pycolmap's synthetic scene: rendered PNGs into `images_dir`, the true model (text) into `gt_dir`.
+
+    One PINHOLE camera with focal 1.2 * max(width, height); cameras surround one point cloud.
+    """
+    pycolmap.set_random_seed(seed)
+    opts = pycolmap.SyntheticDatasetOptions()
+    opts.num_rigs = 1
+    opts.num_cameras_per_rig = 1
+    opts.num_frames_per_rig = num_images
+    opts.num_points3D = num_points
+    opts.camera_width, opts.camera_height = width, height
+    opts.camera_model_id = pycolmap.CameraModelId.PINHOLE
+    focal = 1.2 * max(width, height)
+    opts.camera_params = [focal, focal, width / 2, height / 2]
+    rec = pycolmap.synthesize_dataset(opts)
+    pycolmap.synthesize_images(pycolmap.SyntheticImageOptions(), rec, str(images_dir))
+    rec.write_text(str(gt_dir))

@@ -34,20 +34,65 @@ def write_features(h5: h5py.File, name: str, feats: Features) -> None:
     grp.create_dataset("image_size", data=np.asarray(feats.image_size, np.int32))
 
 
+def has_features(h5: h5py.File, name: str) -> bool:
+    """Whether `name` has a complete group (all four datasets) in an open file."""
+    grp = h5.get(name)
+    return isinstance(grp, h5py.Group) and all(k in grp for k in ("keypoints", "descriptors", "scores", "image_size"))
+
+
 def read_features(path: Path, name: str, *, top_k: int | None = None) -> Features:
     """Features of one image; with `top_k`, only the k best by score (in decreasing score order)."""
     with h5py.File(path, "r") as h5:
-        if name not in h5:
-            raise KeyError(f"image {name!r} has no features in {path}")
-        grp = h5[name]
-        kp = grp["keypoints"][()]
-        desc = grp["descriptors"][()].T
-        scores = grp["scores"][()]
-        size = tuple(int(v) for v in grp["image_size"][()])
+        return _read_group(h5, name, path, top_k)
+
+
+def _read_group(h5: h5py.File, name: str, path: Path, top_k: int | None) -> Features:
+    if name not in h5:
+        raise KeyError(f"image {name!r} has no features in {path}")
+    grp = h5[name]
+    kp = grp["keypoints"][()]
+    desc = grp["descriptors"][()].T
+    scores = grp["scores"][()]
+    size = tuple(int(v) for v in grp["image_size"][()])
     if top_k is not None and len(scores) > top_k:
         order = np.argsort(-scores, kind="stable")[:top_k]
         kp, desc, scores = kp[order], desc[order], scores[order]
     return Features(kp, desc, scores, size)  # type: ignore[arg-type]
+
+
+class FeatureCache:
+    """Features of a file by image name, read on demand and kept for the most recent images.
+
+    The file is opened once and kept open; at most `capacity` images are held in memory.
+    """
+
+    def __init__(self, path: Path, *, capacity: int = 256, top_k: int | None = None) -> None:
+        self.path, self.capacity, self.top_k = Path(path), capacity, top_k
+        self._h5: h5py.File | None = None
+        self._cache: dict[str, Features] = {}
+
+    def get(self, name: str) -> Features:
+        if name in self._cache:
+            self._cache[name] = self._cache.pop(name)  # most recent last
+            return self._cache[name]
+        if self._h5 is None:
+            self._h5 = h5py.File(self.path, "r")
+        feats = _read_group(self._h5, name, self.path, self.top_k)
+        self._cache[name] = feats
+        if len(self._cache) > self.capacity:
+            self._cache.pop(next(iter(self._cache)))
+        return feats
+
+    def close(self) -> None:
+        if self._h5 is not None:
+            self._h5.close()
+            self._h5 = None
+
+    def __enter__(self) -> FeatureCache:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
 
 
 def list_names(path: Path) -> list[str]:
@@ -59,3 +104,46 @@ def list_names(path: Path) -> list[str]:
                 names.append(name)
         h5.visititems(visit)
     return sorted(names)
+
+
+# ---------------------------------------------------------------------------------------------
+# Global descriptors, hloc's layout: one group per image holding `global_descriptor` (D,)
+# ---------------------------------------------------------------------------------------------
+
+
+def write_global(path: Path, names: list[str], desc: np.ndarray, attrs: dict[str, str]) -> None:
+    """Write global descriptors atomically: one group per name, root attributes `attrs`."""
+    from . import atomic_path
+
+    desc = np.asarray(desc, dtype=np.float32)
+    with atomic_path(path) as tmp:
+        with h5py.File(tmp, "w") as h5:
+            for name, row in zip(names, desc):
+                h5.create_group(name).create_dataset("global_descriptor", data=row)
+            for key, value in attrs.items():
+                h5.attrs[key] = value
+
+
+def read_global(path: Path) -> tuple[list[str], np.ndarray]:
+    """Image names (sorted) and their (N, D) float32 global descriptors."""
+    names: list[str] = []
+    with h5py.File(path, "r") as h5:
+        def visit(name: str, obj: object) -> None:
+            if isinstance(obj, h5py.Group) and "global_descriptor" in obj:
+                names.append(name)
+        h5.visititems(visit)
+        names.sort()
+        desc = np.stack([h5[n]["global_descriptor"][()] for n in names]) if names else np.zeros((0, 0))
+    return names, desc.astype(np.float32, copy=False)
+
+
+def stored_attribute(path: Path, key: str) -> str | None:
+    """A root attribute of an h5 file, or None when the file is absent or damaged."""
+    if not Path(path).exists():
+        return None
+    try:
+        with h5py.File(path, "r") as h5:
+            value = h5.attrs.get(key)
+    except OSError:
+        return None
+    return value.decode() if isinstance(value, bytes) else value

@@ -6,7 +6,6 @@ are the same code for all of them, so comparisons measure pair selection and not
 
 from __future__ import annotations
 
-import importlib
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -14,6 +13,7 @@ from typing import Any
 
 from ..config import PipelineConfig
 from ..io.pairs import Pair
+from ..registry import Registry
 
 
 @dataclass
@@ -35,15 +35,22 @@ class PairResult:
 
 
 PairSource = Callable[[PairContext], PairResult]
+#: after_mapping(ctx, pairs, model_dir) -> more pairs to match (empty: the model is as good as it gets)
+AfterMapping = Callable[[PairContext, list[Pair], Path], list[Pair]]
 
-# name -> "module:function", imported on use so a source's dependencies load only when chosen
-SOURCES: dict[str, str] = {
+SOURCES: Registry[PairSource] = Registry("pair source", {
     "sara": "sara.pairs.sara_source:select",
     "exhaustive": "sara.pairs.exhaustive:select",
     "sequential": "sara.pairs.sequential:select",
-    "vocabtree": "sara.pairs.vocabtree:select",
+    "vocab_tree": "sara.pairs.vocabtree:select",
+    "vocabtree": "sara.pairs.vocabtree:select",  # the spelling of sara 0.1
     "retrieval": "sara.pairs.retrieval_only:select",
-}
+})
+
+#: sources that look at the first model and ask for more pairs (matched, then mapped again)
+AFTER_MAPPING: Registry[AfterMapping] = Registry("post-mapping step", {
+    "sara": "sara.pairs.sara_source:after_mapping",
+})
 
 
 def get_source(name: str) -> PairSource:
@@ -51,5 +58,8 @@ def get_source(name: str) -> PairSource:
         raise ValueError(
             f"unknown pair source {name!r}; choose one of {', '.join(SOURCES)} or give a pairs file path"
         )
-    module, func = SOURCES[name].split(":")
-    return getattr(importlib.import_module(module), func)
+    return SOURCES.get(name)
+
+
+def get_after_mapping(name: str) -> AfterMapping | None:
+    return AFTER_MAPPING.get(name) if name in AFTER_MAPPING else None

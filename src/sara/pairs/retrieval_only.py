@@ -17,7 +17,7 @@ from . import PairContext, PairResult
 def select(ctx: PairContext) -> PairResult:
     rconf = ctx.conf.retrieval
     tic = time.perf_counter()
-    global_path = retrieval.run(rconf, ctx.features_path, ctx.names, ctx.out_dir, progress=ctx.progress,
+    global_path = retrieval.run(rconf, ctx.features_path, ctx.names, ctx.out_dir, images_root=ctx.images_root, progress=ctx.progress,
                                 seed=ctx.conf.seed)
     names, desc = retrieval.read_global(global_path)
     describe_s = time.perf_counter() - tic

@@ -16,9 +16,13 @@ import time
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from .. import graph, retrieval, scoring
+from pathlib import Path
+
+from .. import colmap, retrieval, scoring, selection
 from ..io.pairs import Pair
+from ..io.scores import write_scores_csv
 from . import PairContext, PairResult
+from .repair import left_out_views, repair_pairs
 
 logger = logging.getLogger(__name__)
 
@@ -31,7 +35,7 @@ def select(ctx: PairContext) -> PairResult:
     timings: dict[str, float] = {}
     tic = time.perf_counter()
     global_path = retrieval.run(conf.retrieval, ctx.features_path, ctx.names, ctx.out_dir,
-                                progress=ctx.progress, seed=conf.seed)
+                                images_root=ctx.images_root, progress=ctx.progress, seed=conf.seed)
     names, desc = retrieval.read_global(global_path)
     edges = retrieval.knn_pairs(desc, conf.retrieval.num_neighbors).astype(np.int64)
     timings["retrieval"] = time.perf_counter() - tic
@@ -44,20 +48,20 @@ def select(ctx: PairContext) -> PairResult:
     timings["scoring"] = time.perf_counter() - tic
 
     tic = time.perf_counter()
-    selection = graph.select_pairs(len(names), edges, scores.weight, scores.parallax_deg, scores.accepted, conf.graph)
-    roles = list(selection.role)
+    chosen_graph = selection.select_pairs(len(names), edges, scores.weight, scores.parallax_deg, scores.accepted, conf.graph)
+    roles = list(chosen_graph.role)
     rescued = rescue_low_parallax(len(names), edges, roles, scores)
     timings["graph"] = time.perf_counter() - tic
 
-    scoring.write_scores_csv(ctx.out_dir / SCORES_NAME, scores, roles)
-    chosen = [candidates[e] for e, role in enumerate(roles) if role in graph.SELECTED_ROLES or role == "rescue"]
-    labels = graph.connected_components(len(names), _selected_edges(edges, roles))
+    write_scores_csv(ctx.out_dir / SCORES_NAME, scores, roles)
+    chosen = [candidates[e] for e, role in enumerate(roles) if role in selection.SELECTED_ROLES or role == "rescue"]
+    labels = selection.connected_components(len(names), _selected_edges(edges, roles))
     info = {
         "num_candidates": len(candidates),
         "num_accepted": int(scores.accepted.sum()),
         "rejected": _count(r for r in scores.reason if r),
         "num_rescued": rescued,
-        "graph": selection.stats(),
+        "graph": chosen_graph.stats(),
         "selected_components": _component_sizes(labels),
     }
     sizes = info["selected_components"]
@@ -67,6 +71,20 @@ def select(ctx: PairContext) -> PairResult:
     return PairResult(chosen, info, timings)
 
 
+def after_mapping(ctx: PairContext, pairs: list[Pair], model_dir: Path) -> list[Pair]:
+    """Re-link views that the mapper left out of the main model although the selected graph joins
+    them to it: their best unselected candidates into the main model (see `repair.py`)."""
+    main = colmap.registered_images(model_dir)
+    left_out = left_out_views(ctx.names, pairs, main)
+    if not left_out:
+        return []
+    extra = repair_pairs(ctx.out_dir / SCORES_NAME, pairs, main, left_out, ctx.conf.pairs.repair_pairs_per_view)
+    if extra:
+        logger.warning("%d views were left out of the main model: matching %d more pairs and mapping again",
+                       len(left_out), len(extra))
+    return extra
+
+
 def rescue_low_parallax(num_images: int, edges: np.ndarray, roles: list[str], scores: scoring.PairScores) -> int:
     """Join components of the selected graph with pairs rejected only for low parallax.
 
@@ -74,7 +92,7 @@ def rescue_low_parallax(num_images: int, edges: np.ndarray, roles: list[str], sc
     "rescue" in place and returns how many were added.
     """
     selected = _selected_edges(edges, roles)
-    labels = graph.connected_components(num_images, selected)
+    labels = selection.connected_components(num_images, selected)
     pool = np.array([e for e, r in enumerate(scores.reason) if r == RESCUE_REASON and roles[e] == "rejected"
                      and labels[edges[e, 0]] != labels[edges[e, 1]]], dtype=np.int64)
     if len(pool) == 0:
@@ -84,14 +102,14 @@ def rescue_low_parallax(num_images: int, edges: np.ndarray, roles: list[str], sc
     _, first = np.unique(comp_edges, axis=0, return_index=True)  # the best pair per two components
     first = np.sort(first)
     pool, comp_edges = pool[first], comp_edges[first]
-    chosen = graph.maximum_spanning_forest(int(labels.max()) + 1, comp_edges, scores.overlap[pool])
+    chosen = selection.maximum_spanning_forest(int(labels.max()) + 1, comp_edges, scores.overlap[pool])
     for e in pool[chosen]:
         roles[e] = "rescue"
     return len(chosen)
 
 
 def _selected_edges(edges: np.ndarray, roles: list[str]) -> np.ndarray:
-    mask = np.array([r in graph.SELECTED_ROLES or r == "rescue" for r in roles], dtype=bool)
+    mask = np.array([r in selection.SELECTED_ROLES or r == "rescue" for r in roles], dtype=bool)
     return edges[mask] if len(edges) else edges.reshape(0, 2)
 
 

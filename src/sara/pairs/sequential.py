@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..descriptors import top_k_cosine
 from ..io.pairs import Pair, canonical_pairs
 from . import PairContext, PairResult
 
@@ -37,16 +38,7 @@ def nearest_neighbours(desc: np.ndarray, queries: list[int], k: int) -> np.ndarr
     desc: (N, D) float rows (normalised here); queries: Q row indices. Returns (Q, min(k, N - 1))
     int64 row indices, best first; ties go to the lower index.
     """
-    from ..retrieval import l2_normalize
-
-    x = l2_normalize(np.asarray(desc, dtype=np.float32))
-    k = min(k, len(x) - 1)
-    if k < 1 or not queries:
-        return np.zeros((len(queries), 0), dtype=np.int64)
-    rows = np.asarray(queries, dtype=np.int64)
-    sim = x[rows] @ x.T
-    sim[np.arange(len(rows)), rows] = -np.inf
-    return np.argsort(-sim, axis=1, kind="stable")[:, :k].astype(np.int64)
+    return top_k_cosine(desc, k, np.asarray(queries, dtype=np.int64))
 
 
 def loop_pairs(ctx: PairContext, order: list[str]) -> list[Pair]:
@@ -56,7 +48,7 @@ def loop_pairs(ctx: PairContext, order: list[str]) -> list[Pair]:
     conf = ctx.conf.pairs
     if conf.sequential_loop_period < 1 or conf.sequential_loop_neighbors < 1:
         raise ValueError("pairs.sequential_loop_period and pairs.sequential_loop_neighbors must be at least 1")
-    path = retrieval.run(ctx.conf.retrieval, ctx.features_path, order, ctx.out_dir, progress=ctx.progress,
+    path = retrieval.run(ctx.conf.retrieval, ctx.features_path, order, ctx.out_dir, images_root=ctx.images_root, progress=ctx.progress,
                          seed=ctx.conf.seed)
     names, desc = retrieval.read_global(path)
     row = {name: i for i, name in enumerate(names)}

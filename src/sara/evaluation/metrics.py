@@ -1,4 +1,4 @@
-"""Compare estimated COLMAP models with a ground-truth model.
+"""Pose and structure metrics on arrays: relative pose errors, pose AUC, similarity alignment.
 
 Conventions used throughout this module:
 
@@ -18,21 +18,15 @@ from __future__ import annotations
 
 import logging
 import math
-import os
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import numpy as np
-import pycolmap
-
-from .io import write_json_atomic
 
 logger = logging.getLogger(__name__)
 
 DEFAULT_THRESHOLDS_DEG: tuple[float, ...] = (1, 3, 5, 10)
-_MODEL_FILES = ("cameras.bin", "cameras.txt")
 _MIN_NORM = 1e-12  # below this a relative translation has no direction
 _UNDEFINED_DIRECTION_ERROR_DEG = 90.0  # expected angle to a random direction
 
@@ -62,105 +56,7 @@ class Pose:
 
 
 # ----------------------------------------------------------------------------------------------
-# pycolmap access (kept in these few functions so that an API change is mended here)
-
-
-def _has_model(model_dir: Path) -> bool:
-    return any((model_dir / name).is_file() for name in _MODEL_FILES)
-
-
-def read_reconstruction(model_dir: Path) -> pycolmap.Reconstruction:
-    """Read a COLMAP model folder (binary or text).
-
-    Raises:
-        FileNotFoundError: the folder does not exist or holds no COLMAP model.
-    """
-    model_dir = Path(model_dir)
-    if not model_dir.is_dir():
-        raise FileNotFoundError(f"Model folder does not exist: {model_dir}")
-    if not _has_model(model_dir):
-        raise FileNotFoundError(
-            f"No COLMAP model in {model_dir}: expected cameras/images/points3D .bin or .txt files"
-        )
-    try:
-        return pycolmap.Reconstruction(model_dir)
-    except ValueError as error:  # pycolmap reports missing or unreadable files this way
-        raise FileNotFoundError(
-            f"Could not read a COLMAP model from {model_dir}: {error}"
-        ) from error
-
-
-def _pose_of_image(image: Any) -> tuple[np.ndarray, np.ndarray]:
-    """(R_cam_from_world (3, 3), t_cam_from_world (3,)) float64 of a posed pycolmap Image."""
-    cam_from_world = image.cam_from_world()  # a method in pycolmap 4.x, not a property
-    rotation = np.asarray(cam_from_world.rotation.matrix(), dtype=np.float64)
-    translation = np.asarray(cam_from_world.translation, dtype=np.float64).reshape(3)
-    return rotation, translation
-
-
-def _poses_of(rec: pycolmap.Reconstruction) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """name -> (R_cam_from_world (3, 3), t_cam_from_world (3,)) for every image with a pose."""
-    return {image.name: _pose_of_image(image) for image in rec.images.values() if image.has_pose}
-
-
-def _image_reprojection_errors_px(
-    rec: pycolmap.Reconstruction, image: Any, point_ids_sorted: np.ndarray, xyz_sorted: np.ndarray
-) -> np.ndarray:
-    """Reprojection errors (K,) float64 in pixels of the K observations of one posed image.
-
-    Points behind the camera give NaN.
-    """
-    points2d = image.get_observation_points2D()
-    if len(points2d) == 0:
-        return np.zeros(0)
-    xy_observed = np.array([p.xy for p in points2d], dtype=np.float64).reshape(-1, 2)
-    point3d_ids = np.array([p.point3D_id for p in points2d], dtype=np.int64)
-    xyz_world = xyz_sorted[np.searchsorted(point_ids_sorted, point3d_ids)]
-    rotation, translation = _pose_of_image(image)
-    xyz_cam = xyz_world @ rotation.T + translation
-    xy_projected = np.asarray(rec.cameras[image.camera_id].img_from_cam(xyz_cam), dtype=np.float64)
-    return np.linalg.norm(xy_projected.reshape(-1, 2) - xy_observed, axis=1)
-
-
-def reprojection_errors_px(rec: pycolmap.Reconstruction) -> np.ndarray:
-    """Reprojection error of every observation of every 3D point, in pixels.
-
-    Each 3D point is projected with the pose and camera of every image in its track and compared
-    with the observed keypoint. Vectorised per image.
-
-    Returns:
-        (M,) float64, one entry per observation (M = total track length); NaN where the point
-        lies behind the camera.
-    """
-    if rec.num_points3D() == 0:
-        return np.zeros(0)
-    point_ids = np.fromiter(rec.points3D.keys(), dtype=np.int64, count=rec.num_points3D())
-    xyz = np.array([point.xyz for point in rec.points3D.values()], dtype=np.float64)
-    order = np.argsort(point_ids)
-    point_ids_sorted, xyz_sorted = point_ids[order], xyz[order]
-    errors = [
-        _image_reprojection_errors_px(rec, image, point_ids_sorted, xyz_sorted)
-        for image in rec.images.values()
-        if image.has_pose
-    ]
-    return np.concatenate(errors) if errors else np.zeros(0)
-
-
-# ----------------------------------------------------------------------------------------------
 # Pure cores on arrays
-
-
-def load_poses(model_dir: Path) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """Poses of the registered images of a COLMAP model (text or binary).
-
-    Returns:
-        name -> (R_cam_from_world (3, 3) float64, t_cam_from_world (3,) float64); images
-        without a pose are left out.
-
-    Raises:
-        FileNotFoundError: the folder does not exist or holds no model.
-    """
-    return _poses_of(read_reconstruction(Path(model_dir)))
 
 
 def rotation_angle_deg(R_a: np.ndarray, R_b: np.ndarray) -> np.ndarray:
@@ -302,7 +198,7 @@ def umeyama_similarity(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndar
 # Metrics of a whole estimate
 
 
-def _median_or_none(values: np.ndarray) -> float | None:
+def median_or_none(values: np.ndarray) -> float | None:
     values = np.asarray(values, dtype=np.float64)
     return float(np.median(values)) if values.size else None
 
@@ -311,7 +207,7 @@ def _auc_key(threshold_deg: float) -> str:
     return f"{threshold_deg:g}"
 
 
-def _failure_metrics(num_images_gt: int, thresholds_deg: Sequence[float]) -> dict[str, Any]:
+def failure_metrics(num_images_gt: int, thresholds_deg: Sequence[float]) -> dict[str, Any]:
     """The metrics of an estimate that registered nothing."""
     return {
         "num_images_gt": num_images_gt,
@@ -334,7 +230,7 @@ def _failure_metrics(num_images_gt: int, thresholds_deg: Sequence[float]) -> dic
     }
 
 
-def _relative_metrics(est: dict, gt: dict, thresholds_deg: Sequence[float]) -> dict[str, Any]:
+def relative_metrics(est: dict, gt: dict, thresholds_deg: Sequence[float]) -> dict[str, Any]:
     """Relative pose errors over co-registered pairs and AUC over all gt pairs."""
     names = sorted(gt)
     num_pairs_gt = len(names) * (len(names) - 1) // 2
@@ -342,8 +238,8 @@ def _relative_metrics(est: dict, gt: dict, thresholds_deg: Sequence[float]) -> d
     aucs = pose_auc(np.maximum(rot_err, trans_err), thresholds_deg, num_pairs_gt)
     return {
         "num_pairs_coregistered": int(rot_err.size),
-        "rel_rotation_error_median_deg": _median_or_none(rot_err),
-        "rel_translation_error_median_deg": _median_or_none(trans_err),
+        "rel_rotation_error_median_deg": median_or_none(rot_err),
+        "rel_translation_error_median_deg": median_or_none(trans_err),
         "auc": {_auc_key(t): auc for t, auc in zip(thresholds_deg, aucs)},
     }
 
@@ -354,7 +250,7 @@ def scene_radius(centers: np.ndarray) -> float:
     return float(np.median(np.linalg.norm(centers - centers.mean(axis=0), axis=1)))
 
 
-def _absolute_metrics(est: dict, gt: dict) -> dict[str, Any]:
+def absolute_metrics(est: dict, gt: dict) -> dict[str, Any]:
     """Absolute rotation and position errors after aligning est centres to gt centres."""
     result: dict[str, Any] = {
         "abs_rotation_error_median_deg": None,
@@ -383,146 +279,3 @@ def _absolute_metrics(est: dict, gt: dict) -> dict[str, Any]:
     else:
         logger.warning("Ground-truth camera centres coincide: no position error in percent")
     return result
-
-
-def _structure_metrics(rec: pycolmap.Reconstruction) -> dict[str, Any]:
-    """3D point count, mean track length and reprojection errors of one reconstruction."""
-    num_points = rec.num_points3D()
-    errors = reprojection_errors_px(rec)
-    finite = np.isfinite(errors)
-    if not np.all(finite):
-        logger.warning("%d of %d observations lie behind their camera; left out of the "
-                       "reprojection errors", int(np.sum(~finite)), errors.size)
-    errors = errors[finite]
-    return {
-        "num_points3d": int(num_points),
-        "mean_track_length": (
-            float(rec.compute_num_observations() / num_points) if num_points else None
-        ),
-        "reproj_error_mean_px": float(np.mean(errors)) if errors.size else None,
-        "reproj_error_median_px": _median_or_none(errors),
-    }
-
-
-def _read_components(model_dirs: Sequence[Path]) -> list[pycolmap.Reconstruction]:
-    """Read every model folder that exists; missing or empty ones are skipped with a warning."""
-    recs = []
-    for model_dir in model_dirs:
-        try:
-            recs.append(read_reconstruction(Path(model_dir)))
-        except FileNotFoundError as error:
-            logger.warning("Skipping estimated model: %s", error)
-    return recs
-
-
-def evaluate_models(model_dirs: list[Path] | Path, gt_dir: Path, *,
-                    thresholds_deg: Sequence[float] = DEFAULT_THRESHOLDS_DEG) -> dict[str, Any]:
-    """Evaluate the components of an estimated reconstruction against the ground truth.
-
-    Args:
-        model_dirs: estimated COLMAP model folders (one per component), or one folder. Missing
-            folders are skipped; with none left the estimate is scored as a complete failure.
-        gt_dir: ground-truth COLMAP model folder (poses of all images).
-        thresholds_deg: thresholds of the pose AUC, in degrees.
-
-    Returns:
-        A JSON-serialisable dict. Pose metrics use the largest component (most registered
-        images): ``num_registered`` / ``registered_pct`` (gt images registered in it),
-        ``num_registered_any`` (in any component), ``num_components``, ``num_images_est``
-        (registered images of the largest component, gt or not), relative pose error medians
-        in degrees over co-registered pairs, ``auc`` {threshold: AUC of max(rot, trans) error
-        over all gt pairs}, ``abs_rotation_error_median_deg`` and ``position_error_median_pct``
-        (after a similarity alignment of camera centres; None with fewer than 3 images) and
-        the structure statistics ``num_points3d``, ``mean_track_length``,
-        ``reproj_error_mean_px``, ``reproj_error_median_px``. Missing values are None.
-
-    Raises:
-        FileNotFoundError: the ground-truth folder does not exist or holds no model.
-    """
-    if isinstance(model_dirs, (str, os.PathLike)):
-        model_dirs = [Path(model_dirs)]
-    gt = load_poses(Path(gt_dir))
-    metrics = _failure_metrics(len(gt), thresholds_deg)
-    recs = [rec for rec in _read_components(model_dirs) if rec.num_reg_images() > 0]
-    if not recs:
-        logger.warning("No estimated model with registered images: scored as a failure")
-        return metrics
-    largest = max(recs, key=lambda rec: (rec.num_reg_images(), rec.num_points3D()))
-    est = _poses_of(largest)
-    registered_any = set().union(*(_poses_of(rec).keys() for rec in recs)) & gt.keys()
-    num_registered = len(est.keys() & gt.keys())
-    metrics.update({
-        "num_registered": num_registered,
-        "registered_pct": 100.0 * num_registered / len(gt) if gt else 0.0,
-        "num_registered_any": len(registered_any),
-        "num_components": len(recs),
-        "num_images_est": len(est),
-    })
-    metrics.update(_relative_metrics(est, gt, thresholds_deg))
-    metrics.update(_absolute_metrics(est, gt))
-    metrics.update(_structure_metrics(largest))
-    return metrics
-
-
-# ----------------------------------------------------------------------------------------------
-# Presentation and runner
-
-
-def _format_value(value: Any) -> str:
-    if value is None:
-        return "-"
-    if isinstance(value, float):
-        return f"{value:.4f}"
-    return str(value)
-
-
-def format_table(metrics: dict) -> str:
-    """Render metrics as a two-column text table; nested dicts become ``auc@<key>`` rows."""
-    rows = []
-    for key, value in metrics.items():
-        if isinstance(value, dict):
-            rows.extend((f"{key}@{sub}", _format_value(v)) for sub, v in value.items())
-        else:
-            rows.append((key, _format_value(value)))
-    width_key = max([len("metric")] + [len(key) for key, _ in rows])
-    width_value = max([len("value")] + [len(value) for _, value in rows])
-    lines = [
-        f"{'metric':<{width_key}}  {'value':>{width_value}}",
-        f"{'-' * width_key}  {'-' * width_value}",
-    ]
-    lines += [f"{key:<{width_key}}  {value:>{width_value}}" for key, value in rows]
-    return "\n".join(lines)
-
-
-def find_model_dirs(model_root: Path) -> list[Path]:
-    """Component folders under ``model_root``.
-
-    ``model_root`` is either one model folder (holding cameras.bin or cameras.txt) or a folder
-    of components (``sparse/0``, ``sparse/1``, ...). Returns [] when it does not exist.
-    """
-    model_root = Path(model_root)
-    if _has_model(model_root):
-        return [model_root]
-    if not model_root.is_dir():
-        return []
-    subdirs = [p for p in model_root.iterdir() if p.is_dir() and _has_model(p)]
-    numbered = sorted((p for p in subdirs if p.name.isdigit()), key=lambda p: int(p.name))
-    return numbered + sorted(p for p in subdirs if not p.name.isdigit())
-
-
-def run(model_root: Path, gt_dir: Path, out_path: Path | None = None) -> dict:
-    """Evaluate every component under ``model_root`` against ``gt_dir``.
-
-    Writes the metrics as JSON to ``out_path`` (atomically) when given, and returns them.
-    A missing ``model_root`` evaluates as a failed reconstruction.
-    """
-    model_dirs = find_model_dirs(Path(model_root))
-    logger.debug(
-        "Evaluating %d component(s) under %s against %s", len(model_dirs), model_root, gt_dir
-    )
-    metrics = evaluate_models(model_dirs, Path(gt_dir))
-    if out_path is not None:
-        write_json_atomic(Path(out_path), metrics)
-        logger.debug("Wrote metrics to %s", out_path)
-    logger.debug("Evaluation of %s:\n%s", model_root, format_table(metrics))
-    return metrics

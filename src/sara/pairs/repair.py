@@ -9,24 +9,17 @@ usually suffices. Views that SARA itself found unconnected (another scene) are l
 
 from __future__ import annotations
 
-import csv
 import logging
 from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
 
-from . import colmap, graph
-from .io.pairs import Pair
+from ..io.pairs import Pair
+from ..io.scores import read_scores_csv
+from ..selection import connected_components
 
 logger = logging.getLogger(__name__)
-
-
-def model_images(model_dir: Path) -> set[str]:
-    if not (Path(model_dir) / "images.bin").exists() and not (Path(model_dir) / "images.txt").exists():
-        return set()
-    rec = colmap.read_model(model_dir)
-    return {im.name for im in rec.images.values() if im.has_pose}
 
 
 def left_out_views(names: list[str], pairs: list[Pair], main: set[str]) -> list[str]:
@@ -35,7 +28,7 @@ def left_out_views(names: list[str], pairs: list[Pair], main: set[str]) -> list[
         return []
     index = {n: i for i, n in enumerate(names)}
     edges = np.array([sorted((index[a], index[b])) for a, b in pairs], dtype=np.int64).reshape(-1, 2)
-    labels = graph.connected_components(len(names), edges)
+    labels = connected_components(len(names), edges)
     main_labels = np.bincount([labels[index[n]] for n in main if n in index])
     main_label = int(np.argmax(main_labels))
     return [n for n in names if labels[index[n]] == main_label and n not in main]
@@ -47,15 +40,14 @@ def repair_pairs(scores_csv: Path, pairs: list[Pair], main: set[str], left_out: 
     chosen = {tuple(sorted(p)) for p in pairs}
     targets = set(left_out)
     options: dict[str, list[tuple[int, Pair]]] = defaultdict(list)
-    with open(scores_csv, newline="", encoding="utf-8") as f:
-        for row in csv.DictReader(f):
-            a, b = row["name0"], row["name1"]
-            pair = tuple(sorted((a, b)))
-            if pair in chosen or row["reason"] == "no_model":
-                continue
-            for view, other in ((a, b), (b, a)):
-                if view in targets and other in main:
-                    options[view].append((int(row["num_inliers"]), pair))
+    scores, _ = read_scores_csv(scores_csv)
+    for k, (a, b) in enumerate(zip(scores.name0, scores.name1)):
+        pair = tuple(sorted((a, b)))
+        if pair in chosen or scores.reason[k] == "no_model":
+            continue
+        for view, other in ((a, b), (b, a)):
+            if view in targets and other in main:
+                options[view].append((int(scores.num_inliers[k]), pair))
     extra: list[Pair] = []
     for view in left_out:
         ranked = sorted(options[view], key=lambda item: (-item[0], item[1]))

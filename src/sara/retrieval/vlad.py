@@ -1,88 +1,39 @@
-"""Stage `retrieval`: one global descriptor per image, then cosine kNN proposes candidate pairs.
+"""Weight-free global descriptors learned from the collection itself: VLAD (the default) and a
+tf-idf bag of visual words, over each image's own local descriptors (RootSIFT, or any learned ones).
 
-Backends live behind the small `GlobalDescriptor` Protocol and are listed in the explicit registry
-`DESCRIPTORS` (name -> zero-argument factory). The default, `vlad`, needs no downloaded weights:
-VLAD (Jegou et al. 2010; intra-normalisation as in Arandjelovic & Zisserman 2013) over each image's
-own RootSIFT descriptors, with a codebook learned from the collection itself by k-means on a capped
-random sample of descriptors. `bow` is a plain tf-idf bag of visual words over the same kind of
-codebook, kept for comparison. `scripts/retrieval_recall.py` measures the variants against
-ground-truth overlaps: PCA-whitening learned from the collection itself lowered the recall of
-strong overlaps on every scene (k = 5 and 10), so it is off; the order of intra-normalisation and
-signed square root made no difference.
-
-A learned backend (e.g. DINOv2) goes in its own file and is registered lazily, so its heavy imports
-happen only when it is chosen::
-
-    DESCRIPTORS["dinov2"] = lazy_backend("sara.dinov2", "DinoV2Descriptor")
-
-`global.h5` layout (written by `run`, read by `read_global`):
-
-- dataset `names`: (N,) UTF-8 strings, image names in the order of the rows (sorted by `run`);
-- dataset `descriptors`: (N, D) float32, one L2-normalised global descriptor per row;
-- attributes `fingerprint` (of the image names, the config fields that shape the descriptors, the
-  seed and the features file), `descriptor` (backend name) and `config` (JSON).
+VLAD: Jegou et al. 2010, intra-normalisation as in Arandjelovic & Zisserman 2013, with a codebook
+learned by k-means on a capped random sample of the collection's descriptors. `scripts/retrieval_recall.py`
+measures the variants against ground-truth overlaps: PCA-whitening learned from the collection
+lowered the recall of strong overlaps on every scene (k = 5 and 10), so it is off; the order of
+intra-normalisation and signed square root made no difference.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import importlib
-import json
 import logging
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Protocol, runtime_checkable
 
-import h5py
 import numpy as np
 from tqdm import tqdm
 
-from .config import RetrievalConfig
-from .io.h5 import read_features
-from .io import atomic_path, fingerprint
+from ..config import RetrievalConfig
+from ..descriptors import l2_normalize
+from ..io.h5 import read_features
 
 logger = logging.getLogger(__name__)
 
-GLOBAL_NAME = "global.h5"
 CODEBOOK_SAMPLE_SIZE = 100_000  # descriptors sampled from the whole collection to learn the codebook
 KMEANS_ITERATIONS = 20
 BOW_CODEBOOK_SIZE = 1024  # visual words of the `bow` backend (VLAD uses conf.codebook_size)
-_KNN_CHUNK_ROWS = 1024  # rows of the similarity matrix held at once by `knn_pairs`
 _EPS = 1e-12
-
-
-@runtime_checkable
-class GlobalDescriptor(Protocol):
-    """One global descriptor per image, comparable by cosine similarity."""
-
-    name: str
-
-    def compute(self, features_path: Path, names: Sequence[str], conf: RetrievalConfig, *,
-                progress: bool = True, seed: int = 0) -> np.ndarray:
-        """(N, D) float32 descriptors of `names` (in that order), each row L2-normalised.
-
-        `seed` makes any randomness (codebook sampling, k-means) reproducible; deterministic
-        backends ignore it.
-        """
-        ...
 
 
 # ---------------------------------------------------------------------------------------------
 # Pure cores: arrays in, arrays out
 # ---------------------------------------------------------------------------------------------
-
-
-def l2_normalize(x: np.ndarray, axis: int = -1) -> np.ndarray:
-    """`x` scaled to unit L2 norm along `axis` (all-zero vectors stay zero); float32."""
-    x = np.asarray(x, dtype=np.float32)
-    norm = np.linalg.norm(x, axis=axis, keepdims=True)
-    return x / np.maximum(norm, _EPS)
-
-
-def rootsift_to_float(desc: np.ndarray) -> np.ndarray:
-    """(N, 128) uint8 RootSIFT (as COLMAP stores it) -> (N, 128) float32, rows L2-normalised."""
-    return l2_normalize(np.asarray(desc, dtype=np.float32))
 
 
 def squared_distances(x: np.ndarray, centers: np.ndarray) -> np.ndarray:
@@ -194,43 +145,19 @@ def pca_whiten(desc: np.ndarray, *, dims: int | None = None, eps: float = 1e-6) 
     return l2_normalize(proj)
 
 
-def knn_pairs(desc: np.ndarray, k: int) -> np.ndarray:
-    """Top-k cosine neighbours of every image, as a symmetric union of undirected pairs.
-
-    desc: (N, D) rows (normalised here, so any non-zero scale works). Returns (E, 2) int64 pairs
-    with i < j, sorted, unique, no self pairs. Ties go to the lower index. With k >= N - 1 every
-    pair is returned.
-    """
-    if k < 1:
-        raise ValueError(f"num_neighbors must be at least 1, got {k}")
-    x = l2_normalize(np.asarray(desc, dtype=np.float32))
-    num = len(x)
-    k = min(k, num - 1)
-    if k < 1:
-        return np.zeros((0, 2), dtype=np.int64)
-    found = []
-    for start in range(0, num, _KNN_CHUNK_ROWS):
-        rows = np.arange(start, min(start + _KNN_CHUNK_ROWS, num))
-        sim = x[rows] @ x.T
-        sim[np.arange(len(rows)), rows] = -np.inf
-        nbrs = np.argsort(-sim, axis=1, kind="stable")[:, :k]
-        found.append(np.stack([np.repeat(rows, k), nbrs.reshape(-1)], axis=1))
-    pairs = np.sort(np.concatenate(found), axis=1).astype(np.int64)
-    return np.unique(pairs, axis=0)
-
-
 # ---------------------------------------------------------------------------------------------
 # Local descriptors of the collection and the codebook learned from them
 # ---------------------------------------------------------------------------------------------
 
 
 def local_descriptors(features_path: Path, name: str, features_per_image: int) -> np.ndarray:
-    """(M, 128) float32 unit RootSIFT of one image: its `features_per_image` largest-scale ones.
+    """(M, D) float32 unit local descriptors of one image: its `features_per_image` best-scoring ones
+    (for SIFT, the largest scales; uint8 RootSIFT and float descriptors alike).
 
     `features_per_image` <= 0 takes them all.
     """
     feats = read_features(features_path, name, top_k=features_per_image if features_per_image > 0 else None)
-    return rootsift_to_float(feats.descriptors)
+    return l2_normalize(feats.descriptors, axis=1)
 
 
 def sample_descriptors(features_path: Path, names: Sequence[str], features_per_image: int,
@@ -247,7 +174,7 @@ def sample_descriptors(features_path: Path, names: Sequence[str], features_per_i
         if len(desc) > per_image:
             desc = desc[np.sort(rng.choice(len(desc), per_image, replace=False))]
         parts.append(desc)
-    return np.concatenate(parts) if parts else np.zeros((0, 128), np.float32)
+    return np.concatenate(parts) if parts else np.zeros((0, 0), np.float32)
 
 
 def learn_codebook(features_path: Path, names: Sequence[str], num_words: int, features_per_image: int, *,
@@ -284,7 +211,7 @@ class VladDescriptor:
     sample_size: int = CODEBOOK_SAMPLE_SIZE
 
     def compute(self, features_path: Path, names: Sequence[str], conf: RetrievalConfig, *,
-                progress: bool = True, seed: int = 0) -> np.ndarray:
+                images_root: Path | None = None, progress: bool = True, seed: int = 0) -> np.ndarray:
         codebook = learn_codebook(features_path, names, conf.codebook_size, conf.features_per_image,
                                   sample_size=self.sample_size, seed=seed, progress=progress)
         out = np.zeros((len(names), codebook.size), dtype=np.float32)
@@ -302,7 +229,7 @@ class BowDescriptor:
     sample_size: int = CODEBOOK_SAMPLE_SIZE
 
     def compute(self, features_path: Path, names: Sequence[str], conf: RetrievalConfig, *,
-                progress: bool = True, seed: int = 0) -> np.ndarray:
+                images_root: Path | None = None, progress: bool = True, seed: int = 0) -> np.ndarray:
         codebook = learn_codebook(features_path, names, self.num_words, conf.features_per_image,
                                   sample_size=self.sample_size, seed=seed, progress=progress)
         counts = np.zeros((len(names), len(codebook)), dtype=np.int64)
@@ -310,101 +237,3 @@ class BowDescriptor:
             words = assign_words(local_descriptors(features_path, name, conf.features_per_image), codebook)
             counts[i] = np.bincount(words, minlength=len(codebook))
         return bow_tfidf(counts)
-
-
-def lazy_backend(module: str, attr: str) -> Callable[[], GlobalDescriptor]:
-    """A registry entry that imports `module.attr` only when the backend is chosen."""
-
-    def factory() -> GlobalDescriptor:
-        return getattr(importlib.import_module(module), attr)()
-
-    return factory
-
-
-DESCRIPTORS: dict[str, Callable[[], GlobalDescriptor]] = {
-    "vlad": VladDescriptor,
-    "bow": BowDescriptor,
-}
-
-
-def get_descriptor(name: str) -> GlobalDescriptor:
-    """The backend registered under `name`; an unknown name is a ValueError listing the valid ones."""
-    if name not in DESCRIPTORS:
-        raise ValueError(f"unknown global descriptor {name!r}; choose one of: {', '.join(sorted(DESCRIPTORS))}")
-    return DESCRIPTORS[name]()
-
-
-# ---------------------------------------------------------------------------------------------
-# Runner and global.h5
-# ---------------------------------------------------------------------------------------------
-
-
-def _key(conf: RetrievalConfig, features_path: Path, names: Sequence[str], seed: int) -> str:
-    """Fingerprint of everything that shapes the descriptors (not num_neighbors: kNN is cheap)."""
-    stat = Path(features_path).stat()
-    fields = {k: v for k, v in dataclasses.asdict(conf).items() if k != "num_neighbors"}
-    return fingerprint({"names": list(names), "conf": fields, "seed": seed,
-                        "features": {"size": stat.st_size, "mtime_ns": stat.st_mtime_ns}})
-
-
-def _stored_fingerprint(path: Path) -> str | None:
-    if not path.exists():
-        return None
-    try:
-        with h5py.File(path, "r") as h5:
-            value = h5.attrs.get("fingerprint")
-    except OSError:  # a damaged file is recomputed
-        return None
-    return value.decode() if isinstance(value, bytes) else value
-
-
-def write_global(path: Path, names: Sequence[str], desc: np.ndarray, attrs: dict[str, str]) -> None:
-    """Write `global.h5` atomically (see the module docstring for the layout)."""
-    with atomic_path(path) as tmp:
-        with h5py.File(tmp, "w") as h5:
-            h5.create_dataset("names", data=np.array(list(names), dtype=object), dtype=h5py.string_dtype())
-            h5.create_dataset("descriptors", data=np.asarray(desc, dtype=np.float32))
-            for key, value in attrs.items():
-                h5.attrs[key] = value
-
-
-def read_global(path: Path) -> tuple[list[str], np.ndarray]:
-    """Image names and their (N, D) float32 global descriptors from `global.h5`."""
-    with h5py.File(path, "r") as h5:
-        names = [n.decode() if isinstance(n, bytes) else str(n) for n in h5["names"][()]]
-        desc = h5["descriptors"][()].astype(np.float32, copy=False)
-    return names, desc
-
-
-def pairs_from_global(path: Path, num_neighbors: int) -> list[tuple[str, str]]:
-    """Candidate pairs (name_i, name_j), i < j in file order: the symmetric kNN union."""
-    names, desc = read_global(path)
-    return [(names[i], names[j]) for i, j in knn_pairs(desc, num_neighbors)]
-
-
-def run(conf: RetrievalConfig, features_path: Path, names: Sequence[str], out_dir: Path, *,
-        overwrite: bool = False, progress: bool = True, seed: int = 0) -> Path:
-    """Compute the global descriptors of `names` into `out_dir/global.h5`; returns its path.
-
-    Rows are stored in sorted name order (read them back with `read_global`), so callers that pass
-    the same images in another order share one file. Skipped when `global.h5` already holds
-    descriptors of the same names, config, seed and features file (its `fingerprint` attribute).
-    """
-    features_path, out_path = Path(features_path), Path(out_dir) / GLOBAL_NAME
-    if not features_path.exists():
-        raise FileNotFoundError(f"no features file at {features_path}: run the extract stage first")
-    if not names:
-        raise ValueError("no images to describe")
-    backend = get_descriptor(conf.descriptor)
-    names = sorted(set(names))  # rows in name order: the same file whatever order callers pass
-    key = _key(conf, features_path, names, seed)
-    if not overwrite and _stored_fingerprint(out_path) == key:
-        logger.info("retrieval: %s is up to date, skipping", out_path)
-        return out_path
-    desc = np.asarray(backend.compute(features_path, names, conf, progress=progress, seed=seed))
-    if desc.ndim != 2 or len(desc) != len(names):
-        raise RuntimeError(f"descriptor {conf.descriptor!r} returned shape {desc.shape} for {len(names)} images")
-    write_global(out_path, names, l2_normalize(desc),
-                 {"fingerprint": key, "descriptor": conf.descriptor,
-                  "config": json.dumps(dataclasses.asdict(conf), sort_keys=True)})
-    return out_path

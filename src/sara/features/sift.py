@@ -1,0 +1,45 @@
+"""COLMAP's SIFT (RootSIFT, COLMAP's defaults): the default backend, extracted straight into the
+COLMAP database by COLMAP itself, then copied into `features-sift.h5`.
+
+Descriptors stay as COLMAP stores them: (N, 128) uint8, RootSIFT scaled by 512.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from .. import colmap
+from ..config import ExtractConfig
+from ..io.images import ImageSet
+from . import Keypoints
+
+
+class ColmapSift:
+    name = "sift"
+
+    def __init__(self, conf: ExtractConfig) -> None:
+        self.conf = conf
+
+    def extract(self, image: np.ndarray) -> Keypoints:
+        """SIFT of one (H, W, 3) uint8 image, for callers outside the extract stage."""
+        xy, scale, desc = colmap.sift_of_image(image, max_num_features=self.conf.max_num_features)
+        return Keypoints(xy=colmap.colmap_to_hloc_keypoints(xy), scores=scale, descriptors=desc)
+
+    def extract_to_database(self, db_path: Path, images: ImageSet, names: list[str], *, progress: bool) -> None:
+        """COLMAP's extraction of `names` (already imported into the database), in chunks for progress."""
+        conf = self.conf
+        chunk = max(2, min(16, len(names) // 20 or 2))
+        with tqdm(total=len(names), desc="extract SIFT", unit="img", disable=not progress) as bar:
+            for start in range(0, len(names), chunk):
+                part = names[start:start + chunk]
+                colmap.extract_sift(db_path, images.root, part, max_image_size=conf.max_image_size,
+                                    max_num_features=conf.max_num_features, camera_model=conf.camera_model,
+                                    camera_params=conf.camera_params, num_threads=conf.num_threads)
+                bar.update(len(part))
+
+
+def make(conf: ExtractConfig) -> ColmapSift:
+    return ColmapSift(conf)

@@ -1,0 +1,134 @@
+"""`scores.csv`: one row per scored candidate pair, every component of its score and its role.
+
+Columns: name0, name1, num_matches, num_inliers, overlap, parallax_deg, weight, accepted, reason,
+role. Floats are written with full precision (repr), so a file read back gives the same arrays.
+"""
+
+from __future__ import annotations
+
+import csv
+from collections.abc import Sequence
+from pathlib import Path
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from . import atomic_path
+
+@dataclass(eq=False)
+class PairScores:
+    """Scores of P pairs, one entry per pair in the order scored.
+
+    Attributes:
+        name0, name1: image names, P each.
+        num_matches: (P,) int64 mutual nearest neighbours used (at most ``num_matches``).
+        num_inliers: (P,) int64 RANSAC inliers.
+        overlap: (P,) float64 ``num_inliers / sqrt(N0 N1)``.
+        parallax_deg: (P,) float64 median triangulation angle, degrees.
+        weight: (P,) float64 ``w``.
+        accepted: (P,) bool.
+        reason: P strings, why it was rejected (see sara.scoring.REASONS), "" when accepted.
+    """
+
+    name0: list[str]
+    name1: list[str]
+    num_matches: np.ndarray
+    num_inliers: np.ndarray
+    overlap: np.ndarray
+    parallax_deg: np.ndarray
+    weight: np.ndarray
+    accepted: np.ndarray
+    reason: list[str]
+
+    def __len__(self) -> int:
+        return len(self.name0)
+
+    @classmethod
+    def from_scores(cls, pairs: Sequence[tuple[str, str]], scores: Sequence[Any]) -> PairScores:
+        def column(name: str, dtype: Any) -> np.ndarray:
+            return np.array([getattr(s, name) for s in scores], dtype=dtype).reshape(len(scores))
+
+        return cls(
+            name0=[p[0] for p in pairs], name1=[p[1] for p in pairs],
+            num_matches=column("num_matches", np.int64), num_inliers=column("num_inliers", np.int64),
+            overlap=column("overlap", np.float64), parallax_deg=column("parallax_deg", np.float64),
+            weight=column("weight", np.float64), accepted=column("accepted", bool),
+            reason=[s.reason for s in scores],
+        )
+
+
+CSV_COLUMNS = (
+    "name0", "name1", "num_matches", "num_inliers", "overlap", "parallax_deg", "weight",
+    "accepted", "reason", "role",
+)
+
+
+def write_scores_csv(path: Path, scores: PairScores, roles: Sequence[str] | None = None) -> Path:
+    """Write one row per pair (columns :data:`CSV_COLUMNS`) atomically; returns ``path``.
+
+    ``roles`` gives each pair's role in the selection (e.g. "tree", "loop", "rejected");
+    the column is empty without it. Floats are written with full precision.
+    """
+    if roles is not None and len(roles) != len(scores):
+        raise ValueError(f"{len(roles)} roles for {len(scores)} pairs")
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        with open(tmp, "w", newline="", encoding="utf-8") as f:
+            writer = csv.writer(f)
+            writer.writerow(CSV_COLUMNS)
+            for k in range(len(scores)):
+                writer.writerow([
+                    scores.name0[k], scores.name1[k],
+                    int(scores.num_matches[k]), int(scores.num_inliers[k]),
+                    repr(float(scores.overlap[k])), repr(float(scores.parallax_deg[k])),
+                    repr(float(scores.weight[k])), "true" if scores.accepted[k] else "false",
+                    scores.reason[k], roles[k] if roles is not None else "",
+                ])
+    return path
+
+
+def _column(rows: list[dict[str, str]], key: str, convert: Any, path: Path) -> list[Any]:
+    out = []
+    for k, row in enumerate(rows):
+        try:
+            out.append(convert(row[key]))
+        except (TypeError, ValueError):
+            raise ValueError(f"{path}, line {k + 2}: bad {key} {row[key]!r}") from None
+    return out
+
+
+def _parse_bool(text: str) -> bool:
+    low = text.strip().lower()
+    if low in ("true", "1"):
+        return True
+    if low in ("false", "0"):
+        return False
+    raise ValueError(text)
+
+
+def read_scores_csv(path: Path) -> tuple[PairScores, list[str] | None]:
+    """Read a file of :func:`write_scores_csv`; roles are None when that column is empty."""
+    path = Path(path)
+    with open(path, newline="", encoding="utf-8") as f:
+        reader = csv.DictReader(f)
+        missing = [c for c in CSV_COLUMNS if c not in (reader.fieldnames or [])]
+        if missing:
+            raise ValueError(f"{path} is not a scores file: columns {missing} are missing")
+        rows = list(reader)
+
+    def column(key: str, convert: Any, dtype: Any) -> np.ndarray:
+        return np.array(_column(rows, key, convert, path), dtype=dtype).reshape(len(rows))
+
+    scores = PairScores(
+        name0=[r["name0"] for r in rows], name1=[r["name1"] for r in rows],
+        num_matches=column("num_matches", int, np.int64),
+        num_inliers=column("num_inliers", int, np.int64),
+        overlap=column("overlap", float, np.float64),
+        parallax_deg=column("parallax_deg", float, np.float64),
+        weight=column("weight", float, np.float64),
+        accepted=column("accepted", _parse_bool, bool),
+        reason=[r["reason"] for r in rows],
+    )
+    roles = [r["role"] for r in rows]
+    return scores, (roles if any(roles) else None)
