@@ -568,12 +568,59 @@ def plot(records: list[dict[str, Any]], path: Path) -> bool:
     return True
 
 
-def report(out: Path) -> None:
+def plot_world(world_dir: Path, pairs_path: Path | None, path: Path, min_common: int) -> None:
+    """Top view of a world: blocks, the walk, and the selected pairs (red: not truly overlapping)."""
+    import h5py
+    import matplotlib
+    import numpy as np
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.collections import LineCollection
+    from matplotlib.patches import Rectangle
+
+    from sara.scale.world import TRUTH_NAME, Truth
+
+    with h5py.File(world_dir / TRUTH_NAME, "r") as h5:
+        blocks = h5["blocks"][()]
+        centers = h5["centers"][()]
+        R = h5["cam_from_world_R"][()]
+    fig, ax = plt.subplots(figsize=(7, 7))
+    for x0, y0, x1, y1 in blocks:
+        ax.add_patch(Rectangle((x0, y0), x1 - x0, y1 - y0, color="0.85"))
+    ax.scatter(centers[:, 0], centers[:, 1], c=range(len(centers)), s=2, cmap="viridis", zorder=2)
+    step = max(1, len(centers) // 150)
+    ax.quiver(centers[::step, 0], centers[::step, 1], R[::step, 2, 0], R[::step, 2, 1], color="0.3",
+              scale=40, width=0.002, zorder=3)
+    title = f"{len(centers)} images (colour: order along the walk; arrows: viewing direction)"
+    if pairs_path is not None and pairs_path.exists():
+        from sara.io.pairs import read_pairs
+
+        truth = Truth(world_dir, min_common=min_common)
+        pairs = read_pairs(pairs_path)
+        ok = truth.overlaps(pairs)
+        idx = np.array([[truth.index[a], truth.index[b]] for a, b in pairs]) if pairs else np.zeros((0, 2), int)
+        segs = centers[idx][:, :, :2]
+        ax.add_collection(LineCollection(segs[ok], colors="tab:blue", linewidths=0.4, alpha=0.5, zorder=1))
+        ax.add_collection(LineCollection(segs[~ok], colors="red", linewidths=1.2, zorder=4))
+        title += f"\n{len(pairs)} selected pairs, {int((~ok).sum())} not truly overlapping (red)"
+    ax.set_title(title, fontsize=9)
+    ax.set_aspect("equal")
+    ax.autoscale()
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def report(out: Path, min_common: int = 20) -> None:
     records = load_results(out)
     if not records:
         print("no results yet")
         return
     plotted = plot(records, out / "scale_bench.png")
+    first = records[0]["num_images"]
+    if (out / f"world-{first}").exists():
+        plot_world(out / f"world-{first}", out / f"run-{first}" / "pairs.txt", out / "scale_world.png", min_common)
     (out / "scale_bench.json").write_text(json.dumps(records, indent=1, default=_json_default) + "\n")
     (out / "scale_bench.md").write_text(render_markdown(records, "scale_bench.png" if plotted else None))
     header, rows = table_rows(records)
@@ -620,7 +667,7 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"N={n}: {record['selection_s']:.1f} s, {record['peak_rss_gib']:.2f} GiB, "
                       f"{record['selected_per_image']:.2f} pairs/image, {record['components']} component(s), "
                       f"{100 * record['selected_true_fraction']:.1f}% truly overlapping", flush=True)
-    report(args.out)
+    report(args.out, args.min_common)
     return 0
 
 
