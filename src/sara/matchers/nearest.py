@@ -8,7 +8,7 @@ matcher does (`acos` of the dot product, radians). A match i0 -> i1 is kept when
   neighbour (in both directions with `cross_check`);
 - `match.cross_check`: i0 is also the nearest neighbour of i1 (mutual nearest neighbours).
 
-The mutual nearest neighbours and the normalisation are those of `sara.scoring`, one
+The mutual nearest neighbours and the normalisation are those of `sara.descriptors`, one
 implementation for the scorer and this matcher.
 """
 
@@ -17,8 +17,8 @@ from __future__ import annotations
 import numpy as np
 
 from ..config import MatchConfig
+from ..descriptors import l2_normalize, mutual_matches_from_similarity
 from ..io.h5 import Features
-from ..scoring import mutual_matches_from_similarity, normalize_descriptors
 
 
 def _second_best(similarity: np.ndarray, axis: int) -> np.ndarray:
@@ -45,7 +45,7 @@ def match_descriptors(
     """
     if np.ndim(desc0) != 2 or np.ndim(desc1) != 2:
         raise ValueError(f"descriptors must be (N, D), got shapes {np.shape(desc0)} and {np.shape(desc1)}")
-    d0, d1 = normalize_descriptors(desc0), normalize_descriptors(desc1)
+    d0, d1 = l2_normalize(desc0), l2_normalize(desc1)
     if d0.shape[1] != d1.shape[1]:
         raise ValueError(f"descriptor sizes differ: {d0.shape[1]} and {d1.shape[1]}")
     if len(d0) == 0 or len(d1) == 0:
