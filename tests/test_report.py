@@ -167,7 +167,7 @@ def test_graph_layout_is_deterministic_and_spreads_nodes():
 def test_histogram_marks_the_threshold():
     svg = histogram_svg(np.array([0.1, 0.2, 0.9]), [("all", np.ones(3, bool), "#000")], title="t",
                         threshold=0.5, threshold_label="min 0.5", upper=1.0)
-    x = re.search(r'<line x1="([\d.]+)" y1="14"', svg)
+    x = re.search(r'<line x1="([\d.]+)" y1="17"', svg)
     assert x and abs(float(x.group(1)) - (34 + 0.5 * (340 - 34 - 8))) < 0.1
     assert svg.count("<rect") == 3
 

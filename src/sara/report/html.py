@@ -409,7 +409,8 @@ def _pairs_section(data: RunData) -> str:
     table = "".join(f"<tr><td>{_esc(r)}</td><td>{roles[r]}</td></tr>" for r in reversed(ROLE_ORDER) if roles.get(r))
     body = f"<div class=\"bars\">{bars}</div>"
     if table:
-        body += f"<table class=\"small\"><tr><th>role</th><th>pairs</th></tr>{table}</table>"
+        body = (f"<div class=\"side\">{body}<table class=\"small\"><tr><th>role</th><th>pairs</th></tr>"
+                f"{table}</table></div>")
     return _section("Pairs against exhaustive matching", body,
                     "Percentages are of the exhaustive n(n-1)/2 pairs.")
 
@@ -428,26 +429,26 @@ def histogram_svg(values: np.ndarray, groups: Sequence[tuple[str, np.ndarray, st
     clipped = np.clip(values, 0.0, hi)
     counts = [np.histogram(clipped[mask & finite], edges)[0] for _, mask, _ in groups]
     top = max(int(np.sum(counts, axis=0).max(initial=0)), 1)
-    w, h, left, bottom = 340, 170, 34, 28
-    bw = (w - left - 8) / bins
+    w, h, left, bottom, ceiling = 340, 180, 34, 28, 32  # ceiling: the top of the tallest bar
+    bw, height = (w - left - 8) / bins, h - bottom - ceiling
     rects, base = [], np.zeros(bins)
     for (label, _, colour), count in zip(groups, counts):
         for i, c in enumerate(count):
             if c:
-                y0 = h - bottom - (base[i] + c) / top * (h - bottom - 14)
+                y0 = h - bottom - (base[i] + c) / top * height
                 rects.append(f"<rect x=\"{left + i * bw:.1f}\" y=\"{y0:.1f}\" width=\"{bw - 1:.1f}\" "
-                             f"height=\"{c / top * (h - bottom - 14):.1f}\" fill=\"{colour}\"><title>{_esc(label)}: {c} "
+                             f"height=\"{c / top * height:.1f}\" fill=\"{colour}\"><title>{_esc(label)}: {c} "
                              f"in [{edges[i]:.3g}, {edges[i + 1]:.3g})</title></rect>")
         base += count
     parts = [f"<text x=\"{left}\" y=\"11\" class=\"t\">{_esc(title)}</text>", "".join(rects),
              f"<line x1=\"{left}\" y1=\"{h - bottom}\" x2=\"{w - 8}\" y2=\"{h - bottom}\" stroke=\"#555\"/>",
              f"<text x=\"{left}\" y=\"{h - bottom + 14}\">0</text>",
              f"<text x=\"{w - 8}\" y=\"{h - bottom + 14}\" text-anchor=\"end\">{hi:.3g}</text>",
-             f"<text x=\"{left - 4}\" y=\"{h - bottom - (h - bottom - 14) + 4}\" text-anchor=\"end\">{top}</text>"]
+             f"<text x=\"{left - 4}\" y=\"{ceiling + 4}\" text-anchor=\"end\">{top}</text>"]
     if threshold is not None:
         x = left + threshold / hi * (w - left - 8)
-        parts.append(f"<line x1=\"{x:.1f}\" y1=\"14\" x2=\"{x:.1f}\" y2=\"{h - bottom}\" stroke=\"#000\" "
-                     f"stroke-dasharray=\"4 3\"/><text x=\"{x + 3:.1f}\" y=\"26\">{_esc(threshold_label)}</text>")
+        parts.append(f"<line x1=\"{x:.1f}\" y1=\"17\" x2=\"{x:.1f}\" y2=\"{h - bottom}\" stroke=\"#000\" "
+                     f"stroke-dasharray=\"4 3\"/><text x=\"{x + 3:.1f}\" y=\"25\">{_esc(threshold_label)}</text>")
     return f"<svg class=\"hist\" viewBox=\"0 0 {w} {h}\">{''.join(parts)}</svg>"
 
 
@@ -522,7 +523,7 @@ class Thumbnails:
         return f"<img src=\"{uri}\" alt=\"{_esc(name)}\" title=\"{_esc(name)}\">"
 
 
-def weakest_views(data: RunData, count: int = 6) -> list[tuple[str, str]]:
+def weakest_views(data: RunData, count: int = 5) -> list[tuple[str, str]]:
     """(name, why) of the views most at risk: left out of the model, then fewest 3D points (or matched pairs)."""
     roles = data.edge_roles()
     degree = Counter(n for p, r in roles.items() if r not in ("unselected", "rejected") for n in p)
@@ -662,13 +663,14 @@ svg.fig{width:100%;height:auto;background:#fbfcfd;border:1px solid #e6ebf0;borde
 svg.fig.dark{background:#1b2230}
 svg text{font:10px system-ui,sans-serif;fill:#333}
 svg .labels text{fill:#3d4852;paint-order:stroke;stroke:#fbfcfd;stroke-width:3px}
-svg.hist{width:340px;height:170px}svg.hist .t{font-weight:600}
+svg.hist{width:272px;height:auto}svg.hist .t{font-weight:600}
 .hists{display:flex;flex-wrap:wrap;gap:10px}
 .legend{display:flex;flex-wrap:wrap;gap:4px 14px;margin:0 0 8px;font-size:12px}
 .legend label{display:flex;align-items:center;gap:4px;cursor:pointer}.legend .count{color:#5b6773}
 .keys span{display:inline-block;width:12px;height:12px;margin:0 4px 0 10px;vertical-align:-2px;border-radius:2px}
 .keys{font-size:12px;margin:0 0 6px}
-.bars{max-width:900px}.bar{display:flex;align-items:center;gap:8px;margin:3px 0;font-size:12px}
+.bars{max-width:900px;flex:1}
+.side{display:flex;gap:28px;align-items:flex-start}.bar{display:flex;align-items:center;gap:8px;margin:3px 0;font-size:12px}
 .bar .lbl{width:170px;white-space:pre}.bar .track{flex:1;background:#eef2f6;height:14px;border-radius:3px}
 .bar .fill{display:block;height:14px;background:#4c78a8;border-radius:3px}.bar .fill.sub{background:#9ecae9}
 .bar .val{width:150px;text-align:right;color:#333}
