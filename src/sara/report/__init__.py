@@ -14,7 +14,6 @@ The page itself is written by `sara.report.html.write_report(out_dir)`.
 
 from __future__ import annotations
 
-import csv
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -25,6 +24,7 @@ from ..colmap import model
 from ..export import recorded_images_root
 from ..io import read_json
 from ..io.pairs import Pair, read_pairs
+from ..io.scores import read_scores_csv
 
 SELECTED_ROLES = ("tree", "loop", "anchor", "weak", "rescue")
 ALL_ROLES = SELECTED_ROLES + ("repair", "selected", "unselected", "rejected")
@@ -87,27 +87,14 @@ class RunData:
 
 
 def read_scores(path: Path) -> Scores:
-    """Parse `scores.csv` (columns name0,name1,num_matches,num_inliers,overlap,parallax_deg,weight,accepted,reason,role)."""
-    with open(path, newline="", encoding="utf-8") as f:
-        rows = list(csv.DictReader(f))
-    missing = {"name0", "name1", "overlap", "parallax_deg", "weight"} - set(rows[0] if rows else {})
-    if rows and missing:
-        raise ValueError(f"{path} lacks the columns {sorted(missing)}")
-
-    def column(key: str, default: str = "0") -> list[str]:
-        return [row.get(key) or default for row in rows]
-
-    pairs = [_canonical(row["name0"], row["name1"]) for row in rows]
-    accepted = np.array([v.strip().lower() in ("true", "1", "yes") for v in column("accepted", "true")], dtype=bool)
+    """`scores.csv` (read by `sara.io.scores`) with each pair in canonical order and a role for every row."""
+    table, roles = read_scores_csv(path)
+    roles = roles or [""] * len(table)
     return Scores(
-        pairs=pairs,
-        num_inliers=np.array(column("num_inliers"), dtype=np.float64).astype(np.int64),
-        overlap=np.array(column("overlap"), dtype=np.float64),
-        parallax_deg=np.array(column("parallax_deg"), dtype=np.float64),
-        weight=np.array(column("weight"), dtype=np.float64),
-        accepted=accepted,
-        reason=[r.strip() for r in column("reason", "")],
-        role=[r.strip() or ("unselected" if a else "rejected") for r, a in zip(column("role", ""), accepted)],
+        pairs=[_canonical(a, b) for a, b in zip(table.name0, table.name1)],
+        num_inliers=table.num_inliers, overlap=table.overlap, parallax_deg=table.parallax_deg,
+        weight=table.weight, accepted=table.accepted, reason=[r.strip() for r in table.reason],
+        role=[r.strip() or ("unselected" if a else "rejected") for r, a in zip(roles, table.accepted)],
     )
 
 
