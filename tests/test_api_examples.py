@@ -23,7 +23,6 @@ import types
 from pathlib import Path
 
 import pytest
-
 from test_hloc import match_mutual_nn, write_superpoint_like
 
 README = Path(__file__).resolve().parents[1] / "README.md"
@@ -135,10 +134,10 @@ def python_blocks(markdown: str) -> list[str]:
     """The ```python blocks of the README sections in SECTIONS, in order."""
     blocks = []
     for title in SECTIONS:
-        match = re.search(rf"^## {re.escape(title)}\n(.*?)(?=^## |\Z)", markdown, re.S | re.M)
+        match = re.search(rf"^## {re.escape(title)}\n(.*?)(?=^## |\Z)", markdown, re.DOTALL | re.MULTILINE)
         if match is None:
             raise AssertionError(f"README section {title!r} missing")
-        blocks += re.findall(r"```python\n(.*?)```", match.group(1), re.S)
+        blocks += re.findall(r"```python\n(.*?)```", match.group(1), re.DOTALL)
     return blocks
 
 

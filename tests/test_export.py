@@ -306,7 +306,7 @@ def test_nerfstudio_export_loads_like_nerfstudio(run_dir: Path, tmp_path: Path, 
     assert len(frames) == src.num_reg_images()
     assert meta["camera_model"] == "OPENCV" and "fl_x" in meta  # one shared camera
     assert math.isclose(meta["k1"], 0.0 if undistort else 0.05, abs_tol=1e-9)
-    xyz, rgb = read_ascii_ply(dest / meta["ply_file_path"])
+    xyz, _ = read_ascii_ply(dest / meta["ply_file_path"])
     assert len(xyz) == src.num_points3D()
     applied = np.array(meta["applied_transform"])
     by_id = {int(f["colmap_im_id"]): f for f in meta["frames"]}

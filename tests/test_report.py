@@ -16,7 +16,13 @@ import pytest
 from sara.config import make_config
 from sara.pipeline import run
 from sara.report import load_run, read_scores
-from sara.report.html import example_pairs, graph_layout, histogram_svg, top_down_frame, write_report
+from sara.report.html import (
+    example_pairs,
+    graph_layout,
+    histogram_svg,
+    top_down_frame,
+    write_report,
+)
 
 CHROMIUM = Path("/usr/bin/chromium")
 
@@ -70,8 +76,8 @@ def open_in_chromium(page: Path, tmp_path: Path) -> dict:
            "--disable-component-update", "--no-first-run", "--disable-dev-shm-usage",
            f"--user-data-dir={tmp_path / 'chromium-profile'}", "--virtual-time-budget=5000",
            "--window-size=1280,2000", "--dump-dom", probed.as_uri()]
-    result = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
-    match = re.search(r'<pre id="probe">(.*?)</pre>', result.stdout, re.S)
+    result = subprocess.run(cmd, capture_output=True, text=True, timeout=120, check=False)
+    match = re.search(r'<pre id="probe">(.*?)</pre>', result.stdout, re.DOTALL)
     assert match, f"the page did not finish loading in Chromium:\n{result.stderr[-2000:]}"
     return json.loads(match.group(1).replace("&quot;", '"').replace("&amp;", "&").replace("&lt;", "<")
                       .replace("&gt;", ">"))

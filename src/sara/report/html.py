@@ -89,7 +89,7 @@ def _esc(text: object) -> str:
 def _fmt(value: object, digits: int = 3) -> str:
     if value is None:
         return "&ndash;"
-    if isinstance(value, bool) or isinstance(value, int | np.integer):
+    if isinstance(value, bool | int | np.integer):
         return str(value)
     if isinstance(value, float | np.floating):
         if not math.isfinite(float(value)):
