@@ -36,7 +36,14 @@ import pycolmap
 import pytest
 from PIL import Image
 
-from sara.export import export, flat_names, project_ini
+from sara.colmap.model import Intrinsics, ModelData
+from sara.export import (
+    export,
+    flat_names,
+    nerfstudio_camera,
+    nerfstudio_transforms,
+    project_ini,
+)
 
 WIDTH, HEIGHT = 320, 240
 SUBFOLDER = "left"  # half the images live in a sub-folder, as with `sara run --recursive`
@@ -385,3 +392,24 @@ def test_project_ini_uses_the_run_settings(tmp_path: Path):
     ini = parse_ini(text)
     assert ini["Mapper.abs_pose_min_num_inliers"] == "12"
     assert ini["database_path"] == str((tmp_path / "db.db").resolve())
+
+
+def test_nerfstudio_cameras_per_frame_and_models():
+    """Two cameras: intrinsics go into each frame (nerfstudio asserts them there when not top-level)."""
+    cams = {1: Intrinsics(1, "PINHOLE", 640, 480, np.array([500.0, 510.0, 320.0, 240.0])),
+            2: Intrinsics(2, "OPENCV", 800, 600, np.array([600.0, 610.0, 400.0, 300.0, 0.1, -0.01, 0.001, 0.002]))}
+    data = ModelData(cameras=cams, names=["a.jpg", "b.jpg"], image_ids=np.array([1, 2]), camera_ids=np.array([1, 2]),
+                     rotations=np.stack([np.eye(3)] * 2), translations=np.zeros((2, 3)),
+                     num_observations=np.zeros(2, np.int64), points_xyz=np.zeros((0, 3)),
+                     points_rgb=np.zeros((0, 3), np.uint8), track_lengths=np.zeros(0, np.int64),
+                     points_error_px=np.zeros(0))
+    meta = nerfstudio_transforms(data, {"a.jpg": "a.jpg", "b.jpg": "b.jpg"})
+    assert "fl_x" not in meta and meta["camera_model"] == "OPENCV"
+    b = meta["frames"][1]
+    assert (b["fl_x"], b["fl_y"], b["cx"], b["cy"], b["w"], b["h"]) == (600.0, 610.0, 400.0, 300.0, 800, 600)
+    assert (b["k1"], b["k2"], b["p1"], b["p2"]) == (0.1, -0.01, 0.001, 0.002)
+    assert meta["frames"][0]["k1"] == 0.0
+    fisheye = nerfstudio_camera(Intrinsics(3, "OPENCV_FISHEYE", 100, 100, np.array([50, 50, 50, 50, 0.1, 0.2, 0.3, 0.4])))
+    assert fisheye["camera_model"] == "OPENCV_FISHEYE" and fisheye["k4"] == 0.4 and "p1" not in fisheye
+    with pytest.raises(ValueError, match="undistort first"):
+        nerfstudio_camera(Intrinsics(4, "FOV", 100, 100, np.array([50, 50, 50, 50, 0.1])))

@@ -15,7 +15,8 @@
   ``colmap gui --import_path DEST/sparse/0 --database_path DEST/database.db --image_path IMAGES``.
 
 `export` reads the model `OUT/sparse/<model_index>` of a `sara run` and the image folder recorded in
-`OUT/run.json`.
+`OUT/run.json`. It replaces what the format writes in DEST (the folders `images` and `sparse`, the
+files `transforms.json`, `sparse_pc.ply`, `database.db`, `project.ini`) and leaves anything else there.
 """
 
 from __future__ import annotations
@@ -104,6 +105,8 @@ def recorded_images_root(out_dir: Path) -> Path:
     upright = Path(out_dir) / "images_upright"
     if run.get("config", {}).get("images", {}).get("exif_orientation") == "apply" and upright.is_dir():
         return upright
+    if not run.get("images_root"):
+        raise FileNotFoundError(f"{run_json} names no image folder; pass the images folder")
     return Path(run["images_root"])
 
 
@@ -198,12 +201,16 @@ def _export_nerfstudio(model_dir: Path, images_root: Path, dest: Path, *, undist
     else:
         rename = flat_names(data.names)
         _copy_images(images_root, dest / "images", rename)
-    meta = _nerfstudio_meta(data, rename)
+    meta = nerfstudio_transforms(data, rename)
     write_ply(dest / NERFSTUDIO_PLY, data.points_xyz @ APPLIED_TRANSFORM[:, :3].T, data.points_rgb)
     write_text_atomic(dest / "transforms.json", json.dumps(meta, indent=2) + "\n")
 
 
-def _nerfstudio_meta(data: model.ModelData, rename: dict[str, str]) -> dict:
+def nerfstudio_transforms(data: model.ModelData, rename: dict[str, str]) -> dict:
+    """The content of transforms.json: shared intrinsics when all images share one camera, else per frame.
+
+    rename: image name in the model -> file name under `images/`.
+    """
     cameras = {cid: nerfstudio_camera(cam) for cid, cam in data.cameras.items()}
     kinds = {c["camera_model"] for c in cameras.values()}
     if len(kinds) > 1:
