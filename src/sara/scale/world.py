@@ -82,7 +82,7 @@ TRUTH_NAME = "truth.h5"
 WORLD_JSON = "world.json"
 IMAGES_DIR = "images"  # the ImageSet's root; no image files are written
 DESCRIPTOR_DIM = 128
-WORLD_VERSION = 1  # bump when the generator changes what it writes
+WORLD_VERSION = 2  # bump when the generator changes what it writes
 
 _OUTLIER_KEY_BIT = np.uint64(1 << 62)  # keys of outlier descriptors
 _STYLE_KEY_BIT = np.uint64(1 << 61)  # keys of the repeated (style) descriptors
@@ -108,6 +108,7 @@ class WorldConfig:
     repeat_fraction: float = 0.2  # points with a repeated (style) descriptor
     num_styles: int = 24  # facade styles in the city
     style_words: int = 12  # repeated descriptors per style
+    repeat_jitter: float = 0.5  # a repeated point's own deviation from its style word (0: identical copies)
     grid_blocks: int = 0  # G; 0: chosen from num_images and visits_per_street
     visits_per_street: float = 1.6
     # walk
@@ -224,10 +225,26 @@ _PERM_VIEW = np.random.default_rng(101).permutation(DESCRIPTOR_DIM)
 _PERM_SCALE = np.random.default_rng(202).permutation(DESCRIPTOR_DIM)
 
 
-def observe_descriptors(keys: np.ndarray, view_angle_rad: np.ndarray, log_distance: np.ndarray,
-                        rng: np.random.Generator, conf: WorldConfig) -> np.ndarray:
-    """(K,) keys and viewing conditions -> (K, 128) uint8 noisy observations (RootSIFT x 512, clipped)."""
+def point_descriptors(keys: np.ndarray, point_ids: np.ndarray, conf: WorldConfig) -> np.ndarray:
+    """(K,) descriptor keys and point ids (-1: none) -> (K, 128) float32 unit descriptors of the points.
+
+    A repeated point (its key a style word) is its word's vector plus ``repeat_jitter`` times a
+    centred vector of its own: look-alike, as windows of one facade are, but not identical.
+    """
     base = base_descriptors(keys, conf.seed)
+    repeated = np.flatnonzero((np.asarray(keys, np.uint64) & _STYLE_KEY_BIT) != 0)
+    if conf.repeat_jitter > 0 and len(repeated):
+        own = base_descriptors(np.asarray(point_ids)[repeated].astype(np.uint64), conf.seed + 1)
+        own -= own.mean(axis=1, keepdims=True)
+        mixed = np.maximum(base[repeated] + conf.repeat_jitter * own, 0.0)
+        base[repeated] = mixed / np.maximum(np.linalg.norm(mixed, axis=1, keepdims=True), 1e-9)
+    return base
+
+
+def observe_descriptors(keys: np.ndarray, view_angle_rad: np.ndarray, log_distance: np.ndarray,
+                        rng: np.random.Generator, conf: WorldConfig, point_ids: np.ndarray | None = None) -> np.ndarray:
+    """(K,) keys and viewing conditions -> (K, 128) uint8 noisy observations (RootSIFT x 512, clipped)."""
+    base = point_descriptors(keys, np.full(len(keys), -1) if point_ids is None else point_ids, conf)
     if len(base) == 0:
         return np.zeros((0, DESCRIPTOR_DIM), np.uint8)
     centred = base - base.mean(axis=1, keepdims=True)
@@ -535,7 +552,7 @@ def observe_image(city: City, R: np.ndarray, center: np.ndarray, rng: np.random.
     keep = np.argsort(-scores, kind="stable")[: conf.max_keypoints]
     keep = keep[rng.permutation(len(keep))]  # stored in no particular order, as extractors do
     xy = np.clip(xy[keep], 0.0, [conf.width - 1e-3, conf.height - 1e-3])
-    desc = observe_descriptors(keys[keep], view[keep], log_dist[keep], rng, conf)
+    desc = observe_descriptors(keys[keep], view[keep], log_dist[keep], rng, conf, point_ids[keep])
     return ImageObservation(keypoints=(xy - 0.5).astype(np.float32),  # COLMAP -> hloc convention
                             descriptors=desc, scores=scores[keep], point_ids=point_ids[keep])
 
@@ -698,7 +715,7 @@ def selection_context(conf: Any, out_dir: Path, run_dir: Path, *, progress: bool
     from ..pairs import PairContext
 
     out_dir, run_dir = Path(out_dir), Path(run_dir)
-    run_dir.mkdir(parents=True, exist_ok=True)
+    (run_dir / ".sara").mkdir(parents=True, exist_ok=True)  # the pipeline's records folder exists by then
     images = image_set(out_dir)
     feats = features_path(out_dir)
     db = run_dir / DB_NAME
