@@ -101,7 +101,7 @@ def select_pairs(features: Path, pairs_path: Path, *, names: Sequence[str] | Non
     _check_names(names, features)
     conf = conf or make_config("sift-offline")
     work = Path(work_dir) if work_dir is not None else pairs_path.parent / f"{pairs_path.stem}-sara"
-    work.mkdir(parents=True, exist_ok=True)
+    (work / ".sara").mkdir(parents=True, exist_ok=True)  # the records folder a pipeline run would have made
     local = work / "features.h5"
     sizes = copy_for_sara(features, names, local, top_k=_top_k(conf))
     db_path = work / "cameras.db"
