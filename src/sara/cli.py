@@ -24,6 +24,10 @@ def _add_common(p: argparse.ArgumentParser) -> None:
                    help="how images share cameras (default auto: one camera when all images have the same size)")
     p.add_argument("--seed", type=int, help="random seed (default 0): the same inputs give the same pairs")
     p.add_argument("--overwrite", action="store_true", help="redo every stage instead of resuming")
+    p.add_argument("--workers", type=int, help="parallel workers (default 0: one per CPU core); results do not change")
+    p.add_argument("--executor", choices=["auto", "serial", "processes", "ray"],
+                   help="where parallel work runs (default auto: processes, or serial with --workers 1)")
+    p.add_argument("--ray-address", help="with --executor ray: a cluster address, or auto for a running one")
 
 
 def _add_output(p: argparse.ArgumentParser) -> None:
@@ -84,7 +88,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--num-images", type=int, default=24)
     _add_output(p)
 
+    from . import weights
     from .bench import DEFAULT_METHODS
+
+    weights.add_parser(sub)
 
     p = sub.add_parser("bench", help="compare pair sources on scenes with ground truth")
     p.add_argument("scenes", nargs="+", type=Path, help="scene folders holding images/ and gt/")
@@ -106,7 +113,8 @@ def _config(args: argparse.Namespace):
 
     overrides = parse_override_args(args.overrides)
     for flag, key in (("recursive", "images.recursive"), ("camera_mode", "extract.camera_mode"),
-                      ("seed", "seed"), ("mapper", "map.mapper")):
+                      ("seed", "seed"), ("mapper", "map.mapper"), ("workers", "execute.workers"),
+                      ("executor", "execute.executor"), ("ray_address", "execute.ray_address")):
         value = getattr(args, flag, None)
         if value not in (None, False):
             overrides[key] = value
@@ -202,12 +210,16 @@ def main(argv: list[str] | None = None) -> int:
         "match": _cmd_match, "map": _cmd_map, "evaluate": _cmd_evaluate, "demo": _cmd_demo,
     }
     commands["bench"] = _cmd_bench
+    from . import weights
+
+    commands["weights"] = weights.cmd
     try:
         commands[args.command](args)
     except KeyboardInterrupt:
         print("sara: interrupted; run the same command again to resume where it stopped", file=sys.stderr)
         return EXIT_INTERRUPTED
-    except (FileNotFoundError, NotADirectoryError, ValueError, OutputLockedError, OutputMismatchError) as exc:
+    except (FileNotFoundError, NotADirectoryError, ValueError, OutputLockedError, OutputMismatchError,
+            weights.MissingExtraError) as exc:
         if args.verbose:
             logger.exception("failed")
         print(f"sara: error: {exc}", file=sys.stderr)

@@ -226,6 +226,15 @@ PRESETS: dict[str, dict[str, Any]] = {
     "sift-offline": {},
     # Faster preview on large collections: fewer SIFT features, smaller images.
     "sift-fast": {"extract.max_num_features": 4096, "extract.max_image_size": 1600},
+    # The paper's setting: learned features and LightGlue (`pip install 'sara[learned]'` and the weights;
+    # `sara weights` says where each file is looked for). 1024 px and 2048 keypoints, as measured in
+    # docs/BENCHMARKS.md; the licence of each weight file is listed by `sara weights`.
+    "aliked-lightglue": {"extract.backend": "aliked-n16", "extract.max_num_features": 2048,
+                         "extract.max_image_size": 1024, "match.backend": "lightglue"},
+    "disk-lightglue": {"extract.backend": "disk", "extract.max_num_features": 2048,
+                       "extract.max_image_size": 1024, "match.backend": "lightglue"},
+    "xfeat-lighterglue": {"extract.backend": "xfeat", "extract.max_num_features": 2048,
+                          "extract.max_image_size": 1024, "match.backend": "lighterglue"},
 }
 
 

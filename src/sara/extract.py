@@ -4,6 +4,7 @@ the COLMAP database (images, cameras, keypoints), for any backend of `sara.featu
 from __future__ import annotations
 
 import logging
+from dataclasses import dataclass
 from pathlib import Path
 
 import h5py
@@ -11,12 +12,12 @@ import numpy as np
 from tqdm import tqdm
 
 from . import colmap
-from .io import records
 from .config import ExtractConfig
-from .features import LocalFeatures, features_file_name, make_backend
+from .execute import Executor, SerialExecutor, single_threaded_torch_in_worker
+from .features import Keypoints, LocalFeatures, features_file_name, make_backend
+from .io import atomic_path, fingerprint, records
 from .io.h5 import Features, has_features, write_features
 from .io.images import ImageSet
-from .io import atomic_path, fingerprint
 
 logger = logging.getLogger(__name__)
 
@@ -75,8 +76,8 @@ def _check_existing_database(db_path: Path, images: ImageSet) -> bool:
     return len(in_db) == len(images.names)
 
 
-def run(conf: ExtractConfig, images: ImageSet, out_dir: Path, *, overwrite: bool = False,
-        progress: bool = True) -> Path:
+def run(conf: ExtractConfig, images: ImageSet, out_dir: Path, *, executor: Executor | None = None,
+        overwrite: bool = False, progress: bool = True) -> Path:
     """Local features of every image; returns the path of `features-<backend>.h5`.
 
     The COLMAP database receives the images, their cameras and the keypoints. Resumes an
@@ -117,7 +118,7 @@ def run(conf: ExtractConfig, images: ImageSet, out_dir: Path, *, overwrite: bool
             backend.extract_to_database(db_path, images, todo, progress=progress)
         counts = _export_h5(db_path, h5_path, images, progress)
     else:
-        counts = _extract_to_h5(backend, conf, images, h5_path, progress)
+        counts = _extract_to_h5(backend, conf, images, h5_path, executor, progress)
         _import_keypoints(db_path, h5_path, images.names)
     info = _summary(counts)
     info.update(camera_mode=camera_mode, backend=conf.backend, features=h5_path.name)
@@ -149,10 +150,45 @@ def to_full_resolution(xy: np.ndarray, factors: tuple[float, float]) -> np.ndarr
     return ((np.asarray(xy, np.float64) + 0.5) * np.asarray(factors) - 0.5).astype(np.float32)
 
 
+@dataclass(frozen=True)
+class _ExtractJob:
+    """Images for a worker: it builds the backend once and returns full-resolution features."""
+
+    conf: ExtractConfig
+    root: str
+    names: list[str]
+
+
+_BACKENDS: dict[tuple, LocalFeatures] = {}  # per process
+
+
+def _backend_key(conf: ExtractConfig) -> tuple:
+    return tuple(sorted(conf.__dict__.items()))
+
+
+def _extract_images(job: _ExtractJob) -> list[Keypoints]:
+    key = _backend_key(job.conf)
+    if key not in _BACKENDS:
+        single_threaded_torch_in_worker()
+        _BACKENDS.clear()
+        _BACKENDS[key] = make_backend(job.conf)
+    out = []
+    for name in job.names:
+        pixels, factors = load_image(Path(job.root) / name, job.conf.max_image_size)
+        found = _BACKENDS[key].extract(pixels)
+        out.append(Keypoints(xy=to_full_resolution(found.xy, factors), scores=np.asarray(found.scores, np.float32),
+                             descriptors=np.asarray(found.descriptors)))
+    return out
+
+
+#: images per job of learned extraction: progress and resume granularity
+EXTRACT_CHUNK = 8
+
+
 def _extract_to_h5(backend: LocalFeatures, conf: ExtractConfig, images: ImageSet, h5_path: Path,
-                   progress: bool) -> dict[str, int]:
+                   executor: Executor | None, progress: bool) -> dict[str, int]:
     """Run a pixel backend over every image into `h5_path`, resumably (a `.partial` file grows
-    image by image and is renamed when complete). Returns keypoints per image."""
+    chunk by chunk and is renamed when complete). Returns keypoints per image."""
     partial = _partial(h5_path)
     try:
         with h5py.File(partial, "a") as h5:
@@ -161,17 +197,19 @@ def _extract_to_h5(backend: LocalFeatures, conf: ExtractConfig, images: ImageSet
         partial.unlink(missing_ok=True)
         done = set()
     todo = [n for n in images.names if n not in done]
+    chunks = [todo[k:k + EXTRACT_CHUNK] for k in range(0, len(todo), EXTRACT_CHUNK)]
+    _BACKENDS[_backend_key(conf)] = backend  # in this process, reuse the one already loaded
+    results = (executor or SerialExecutor()).map(
+        _extract_images, [_ExtractJob(conf, str(images.root), chunk) for chunk in chunks])
     with h5py.File(partial, "a") as h5, tqdm(total=len(images.names), initial=len(done),
                                               desc=f"extract {backend.name}", unit="img",
                                               disable=not progress) as bar:
-        for name in todo:
-            pixels, factors = load_image(images.root / name, conf.max_image_size)
-            found = backend.extract(pixels)
-            write_features(h5, name, Features(
-                keypoints=to_full_resolution(found.xy, factors), descriptors=found.descriptors,
-                scores=found.scores, image_size=images.sizes[name]))
+        for chunk, found in zip(chunks, results):
+            for name, kp in zip(chunk, found):
+                write_features(h5, name, Features(keypoints=kp.xy, descriptors=kp.descriptors, scores=kp.scores,
+                                                  image_size=images.sizes[name]))
             h5.flush()
-            bar.update(1)
+            bar.update(len(chunk))
         counts = {n: int(h5[n]["keypoints"].shape[0]) for n in images.names}
     partial.replace(h5_path)
     return counts

@@ -7,18 +7,19 @@ import contextlib
 import logging
 import time
 from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 from tqdm import tqdm
 
 from . import colmap
-from .io import records
 from .config import MatchConfig
-from .io import fingerprint, read_json, write_json_atomic
+from .execute import Executor, SerialExecutor, single_threaded_torch_in_worker
+from .io import fingerprint, read_json, records, write_json_atomic
 from .io.h5 import FeatureCache
 from .io.pairs import Pair, read_pairs, write_pairs
-from .matchers import make_matcher, resolve_name
+from .matchers import Matcher, make_matcher, resolve_name
 
 logger = logging.getLogger(__name__)
 
@@ -28,7 +29,7 @@ PROGRESS_RECORD = "match-progress"
 
 
 def run(conf: MatchConfig, pairs_path: Path, db_path: Path, out_dir: Path, *, features_path: Path,
-        features_backend: str = "sift", progress: bool = True) -> Path:
+        features_backend: str = "sift", executor: Executor | None = None, progress: bool = True) -> Path:
     """Match every pair of `pairs_path` into the database; returns the database path (counts and
     the time taken go into the stage record).
 
@@ -60,22 +61,25 @@ def run(conf: MatchConfig, pairs_path: Path, db_path: Path, out_dir: Path, *, fe
     earlier_s = float(progress_record.get("info", {}).get("time_s", 0.0)) if progress_record.get("key") == key else 0.0
     tic = time.perf_counter()
     chunk_path = out_dir / ".sara" / "match_chunk.txt"
-    reader = FeatureCache(Path(features_path))
+    chunks = [todo[k:k + conf.chunk_size] for k in range(0, len(todo), conf.chunk_size)]
     with tqdm(total=len(pairs), initial=len(pairs) - len(todo), desc=f"match pairs ({matcher.name})", unit="pair",
               disable=not progress) as bar, space_free_names(db_path, out_dir) as alias:
-        for start in range(0, len(todo), conf.chunk_size):
-            chunk = todo[start:start + conf.chunk_size]
-            if not hasattr(matcher, "match_in_database"):
-                colmap.write_matches(db_path, {(alias.get(a, a), alias.get(b, b)): matcher.match(reader.get(a), reader.get(b))[0]
-                                               for a, b in chunk})
-            write_pairs(chunk_path, [(alias.get(a, a), alias.get(b, b)) for a, b in chunk])
-            if hasattr(matcher, "match_in_database"):
+        if hasattr(matcher, "match_in_database"):
+            found: Iterator[list[np.ndarray] | None] = iter([None] * len(chunks))
+        else:
+            _MATCHERS[_matcher_key(conf, features_backend)] = matcher  # in this process, reuse it
+            jobs = [_MatchJob(conf, features_backend, str(features_path), chunk) for chunk in chunks]
+            found = (executor or SerialExecutor()).map(_match_chunk, jobs)
+        for chunk, matches in zip(chunks, found):
+            renamed = [(alias.get(a, a), alias.get(b, b)) for a, b in chunk]
+            write_pairs(chunk_path, renamed)
+            if matches is None:
                 matcher.match_in_database(db_path, chunk_path)
             else:
+                colmap.write_matches(db_path, dict(zip(renamed, matches)))
                 colmap.verify_pairs(db_path, chunk_path, min_num_inliers=conf.min_num_inliers)
             bar.update(len(chunk))
             records.mark_done(out_dir, PROGRESS_RECORD, key, {"time_s": earlier_s + time.perf_counter() - tic})
-    reader.close()
     chunk_path.unlink(missing_ok=True)
     elapsed = earlier_s + time.perf_counter() - tic
     info = {"num_pairs": len(pairs), "num_matched_now": len(todo), "time_s": elapsed, "matcher": matcher.name,
@@ -83,6 +87,40 @@ def run(conf: MatchConfig, pairs_path: Path, db_path: Path, out_dir: Path, *, fe
     records.mark_done(out_dir, STAGE, key, info)
     logger.info("match: %d pairs in %.1f s, %d verified", len(pairs), elapsed, info["num_verified_pairs"])
     return Path(db_path)
+
+
+@dataclass(frozen=True)
+class _MatchJob:
+    """A chunk of pairs for a worker: it opens the features file and loads the matcher once."""
+
+    conf: MatchConfig
+    features_backend: str
+    features_path: str
+    pairs: list[Pair]
+
+
+_MATCHERS: dict[tuple, Matcher] = {}  # per process
+_READERS: dict[str, FeatureCache] = {}  # per process
+
+
+def _matcher_key(conf: MatchConfig, features_backend: str) -> tuple:
+    return (tuple(sorted(conf.__dict__.items())), features_backend)
+
+
+def _match_chunk(job: _MatchJob) -> list[np.ndarray]:
+    """(K, 2) matches of every pair of the job, in order."""
+    key = _matcher_key(job.conf, job.features_backend)
+    if key not in _MATCHERS:
+        single_threaded_torch_in_worker()
+        _MATCHERS.clear()
+        _MATCHERS[key] = make_matcher(job.conf, job.features_backend)
+    if job.features_path not in _READERS:
+        for reader in _READERS.values():
+            reader.close()
+        _READERS.clear()
+        _READERS[job.features_path] = FeatureCache(Path(job.features_path))
+    matcher, reader = _MATCHERS[key], _READERS[job.features_path]
+    return [np.asarray(matcher.match(reader.get(a), reader.get(b))[0], dtype=np.int32) for a, b in job.pairs]
 
 
 ALIASES_NAME = "name_aliases.json"

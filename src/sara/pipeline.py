@@ -29,8 +29,17 @@ from typing import Any
 
 from . import __version__, colmap, extract, mapping, match
 from .config import PipelineConfig
+from .execute import Executor, make_executor
 from .features import features_file_name
-from .io import OutputLock, atomic_path, fingerprint, read_json, records, write_json_atomic, write_text_atomic
+from .io import (
+    OutputLock,
+    atomic_path,
+    fingerprint,
+    read_json,
+    records,
+    write_json_atomic,
+    write_text_atomic,
+)
 from .io.images import ImageSet, scan_images, upright_copy
 from .io.pairs import read_pairs, write_pairs
 from .pairs import SOURCES, PairContext, get_after_mapping, get_source
@@ -99,13 +108,14 @@ def pair_source_file(method: str) -> Path | None:
 
 
 def pair_context(conf: PipelineConfig, images: ImageSet, features_path: Path, out_dir: Path, *,
-                 progress: bool = True) -> PairContext:
+                 executor: Executor | None = None, progress: bool = True) -> PairContext:
     return PairContext(names=images.names, images_root=images.root, features_path=features_path,
-                       db_path=out_dir / extract.DB_NAME, out_dir=out_dir, conf=conf, progress=progress)
+                       db_path=out_dir / extract.DB_NAME, out_dir=out_dir, conf=conf, progress=progress,
+                       executor=executor)
 
 
 def select_pairs(conf: PipelineConfig, images: ImageSet, features_path: Path, out_dir: Path, *,
-                 overwrite: bool = False, progress: bool = True) -> Path:
+                 executor: Executor | None = None, overwrite: bool = False, progress: bool = True) -> Path:
     """Stage `pairs`: write `pairs.txt` from the configured source; returns its path."""
     method = conf.pairs.method
     source_file = pair_source_file(method)
@@ -121,7 +131,8 @@ def select_pairs(conf: PipelineConfig, images: ImageSet, features_path: Path, ou
         pairs = read_pairs(source_file, known_names=images.names)
         info: dict[str, Any] = {"source": str(source_file)}
     else:
-        result = get_source(method)(pair_context(conf, images, features_path, out_dir, progress=progress))
+        ctx = pair_context(conf, images, features_path, out_dir, executor=executor, progress=progress)
+        result = get_source(method)(ctx)
         pairs, info = result.pairs, {**result.info, "timings_s": result.timings_s}
     write_pairs(pairs_path, pairs)
     n = len(images.names)
@@ -137,10 +148,10 @@ def select_pairs(conf: PipelineConfig, images: ImageSet, features_path: Path, ou
 
 
 def match_pairs(conf: PipelineConfig, pairs_path: Path, features_path: Path, out_dir: Path, *,
-                progress: bool = True) -> Path:
+                executor: Executor | None = None, progress: bool = True) -> Path:
     """Stage `match` with this run's matcher; returns the database."""
     return match.run(conf.match, pairs_path, out_dir / extract.DB_NAME, out_dir, features_path=features_path,
-                     features_backend=conf.extract.backend, progress=progress)
+                     features_backend=conf.extract.backend, executor=executor, progress=progress)
 
 
 def map_model(conf: PipelineConfig, images_root: Path, out_dir: Path, *, progress: bool = True) -> Path:
@@ -151,7 +162,7 @@ def map_model(conf: PipelineConfig, images_root: Path, out_dir: Path, *, progres
 
 
 def after_mapping_rounds(conf: PipelineConfig, images: ImageSet, features_path: Path, out_dir: Path, *,
-                         progress: bool = True) -> dict[str, Any] | None:
+                         executor: Executor | None = None, progress: bool = True) -> dict[str, Any] | None:
     """Let the pair source look at the model and ask for more pairs; match them and map again.
 
     Up to `pairs.repair_rounds` rounds. `pairs.txt` then lists every pair matched, and the pairs
@@ -161,7 +172,7 @@ def after_mapping_rounds(conf: PipelineConfig, images: ImageSet, features_path: 
     if step is None or conf.pairs.repair_rounds <= 0:
         return None
     pairs_path = out_dir / PAIRS_NAME
-    ctx = pair_context(conf, images, features_path, out_dir, progress=progress)
+    ctx = pair_context(conf, images, features_path, out_dir, executor=executor, progress=progress)
     info = records.done_info(out_dir, AFTER_MAPPING_STAGE) or {
         "rounds": 0, "pairs_added": 0, "time_s": 0.0,  # time of the extra rounds
         # match and map time of the whole run: the first round, then each extra one added
@@ -175,7 +186,7 @@ def after_mapping_rounds(conf: PipelineConfig, images: ImageSet, features_path: 
         tic = time.perf_counter()
         write_pairs(pairs_path, pairs + extra)
         _add_to_pairs_record(out_dir, len(extra))
-        match_pairs(conf, pairs_path, features_path, out_dir, progress=progress)
+        match_pairs(conf, pairs_path, features_path, out_dir, executor=ctx.executor, progress=progress)
         map_model(conf, images.root, out_dir, progress=progress)
         info["rounds"] += 1
         info["pairs_added"] += len(extra)
@@ -214,35 +225,47 @@ def run(conf: PipelineConfig, images_root: Path, out_dir: Path, *, gt_dir: Path 
     pair_source_file(conf.pairs.method)  # a bad --pairs fails before any work
     images = scan_images(images_root, recursive=conf.images.recursive, progress=progress)
     out_dir.mkdir(parents=True, exist_ok=True)
-    with OutputLock(out_dir):
-        images = _handle_orientation(conf.images.exif_orientation, images, out_dir, progress)
-        colmap.send_log_to(out_dir / "logs", verbose=verbose_colmap)
-        colmap.set_seed(conf.seed)
-        report = RunReport(out_dir, images_root, conf.to_dict(), skipped_images=images.skipped)
-        report.stages["images"] = {"num_images": len(images.names), "num_skipped": len(images.skipped)}
-        tic = time.perf_counter()
-        features = extract.run(conf.extract, images, out_dir, overwrite=overwrite, progress=progress)
-        report.stages["extract"] = {**records.done_info(out_dir, extract.STAGE), "time_s": time.perf_counter() - tic}
-        report.save()
-        if stop_after == "extract":
-            return report
-        pairs_path = select_pairs(conf, images, features, out_dir, progress=progress)
-        report.stages["pairs"] = records.done_info(out_dir, PAIRS_STAGE)
-        report.save()
-        if stop_after == "pairs":
-            return report
-        match_pairs(conf, pairs_path, features, out_dir, progress=progress)
-        report.stages["match"] = records.done_info(out_dir, match.STAGE)
-        report.save()
-        map_model(conf, images.root, out_dir, progress=progress)
-        report.stages["map"] = records.done_info(out_dir, mapping.STAGE)
-        _collect_after_mapping(report, after_mapping_rounds(conf, images, features, out_dir, progress=progress))
-        if gt_dir is not None:
-            from .evaluation import evaluate
+    executor = make_executor(conf.execute.executor, conf.execute.workers, conf.execute.ray_address)
+    try:
+        with OutputLock(out_dir):
+            return _run_stages(conf, images, images_root, out_dir, executor, gt_dir=gt_dir, overwrite=overwrite,
+                               progress=progress, verbose_colmap=verbose_colmap, stop_after=stop_after)
+    finally:
+        executor.close()
 
-            report.metrics = evaluate(out_dir / "sparse", Path(gt_dir), out_dir / "metrics.json")
-        report.save()
-        write_text_atomic(out_dir / "report.md", render_report(report))
+
+def _run_stages(conf: PipelineConfig, images: ImageSet, images_root: Path, out_dir: Path, executor: Executor, *,
+                gt_dir: Path | None, overwrite: bool, progress: bool, verbose_colmap: bool,
+                stop_after: str | None) -> RunReport:
+    images = _handle_orientation(conf.images.exif_orientation, images, out_dir, progress)
+    colmap.send_log_to(out_dir / "logs", verbose=verbose_colmap)
+    colmap.set_seed(conf.seed)
+    report = RunReport(out_dir, images_root, conf.to_dict(), skipped_images=images.skipped)
+    report.stages["images"] = {"num_images": len(images.names), "num_skipped": len(images.skipped)}
+    tic = time.perf_counter()
+    features = extract.run(conf.extract, images, out_dir, executor=executor, overwrite=overwrite, progress=progress)
+    report.stages["extract"] = {**records.done_info(out_dir, extract.STAGE), "time_s": time.perf_counter() - tic}
+    report.save()
+    if stop_after == "extract":
+        return report
+    pairs_path = select_pairs(conf, images, features, out_dir, executor=executor, progress=progress)
+    report.stages["pairs"] = records.done_info(out_dir, PAIRS_STAGE)
+    report.save()
+    if stop_after == "pairs":
+        return report
+    match_pairs(conf, pairs_path, features, out_dir, executor=executor, progress=progress)
+    report.stages["match"] = records.done_info(out_dir, match.STAGE)
+    report.save()
+    map_model(conf, images.root, out_dir, progress=progress)
+    report.stages["map"] = records.done_info(out_dir, mapping.STAGE)
+    _collect_after_mapping(report, after_mapping_rounds(conf, images, features, out_dir, executor=executor,
+                                                        progress=progress))
+    if gt_dir is not None:
+        from .evaluation import evaluate
+
+        report.metrics = evaluate(out_dir / "sparse", Path(gt_dir), out_dir / "metrics.json")
+    report.save()
+    write_text_atomic(out_dir / "report.md", render_report(report))
     return report
 
 

@@ -95,15 +95,22 @@ class FeatureCache:
         self.close()
 
 
-def list_names(path: Path) -> list[str]:
-    """Names of all images with features in an HDF5 file (nested groups joined with '/')."""
+def groups_holding(h5: h5py.File, dataset: str) -> list[str]:
+    """Sorted names of the groups that hold `dataset` (nested groups joined with '/'): image names."""
     names: list[str] = []
-    with h5py.File(path, "r") as h5:
-        def visit(name: str, obj: object) -> None:
-            if isinstance(obj, h5py.Group) and "keypoints" in obj:
-                names.append(name)
-        h5.visititems(visit)
+
+    def visit(name: str, obj: object) -> None:
+        if isinstance(obj, h5py.Group) and dataset in obj:
+            names.append(name)
+
+    h5.visititems(visit)
     return sorted(names)
+
+
+def list_names(path: Path) -> list[str]:
+    """Names of all images with features in an HDF5 file."""
+    with h5py.File(path, "r") as h5:
+        return groups_holding(h5, "keypoints")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -126,13 +133,8 @@ def write_global(path: Path, names: list[str], desc: np.ndarray, attrs: dict[str
 
 def read_global(path: Path) -> tuple[list[str], np.ndarray]:
     """Image names (sorted) and their (N, D) float32 global descriptors."""
-    names: list[str] = []
     with h5py.File(path, "r") as h5:
-        def visit(name: str, obj: object) -> None:
-            if isinstance(obj, h5py.Group) and "global_descriptor" in obj:
-                names.append(name)
-        h5.visititems(visit)
-        names.sort()
+        names = groups_holding(h5, "global_descriptor")
         desc = np.stack([h5[n]["global_descriptor"][()] for n in names]) if names else np.zeros((0, 0))
     return names, desc.astype(np.float32, copy=False)
 

@@ -25,6 +25,7 @@ class PairContext:
     out_dir: Path  # where a source may write its own files (scores.csv, global.h5, ...)
     conf: PipelineConfig
     progress: bool = True
+    executor: Any = None  # a sara.execute.Executor for parallel work; None: this process
 
 
 @dataclass

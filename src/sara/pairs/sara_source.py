@@ -12,11 +12,9 @@ from __future__ import annotations
 
 import logging
 import time
+from pathlib import Path
 
 import numpy as np
-from threadpoolctl import threadpool_limits
-
-from pathlib import Path
 
 from .. import colmap, retrieval, scoring, selection
 from ..io.pairs import Pair
@@ -42,9 +40,8 @@ def select(ctx: PairContext) -> PairResult:
 
     tic = time.perf_counter()
     candidates: list[Pair] = [(names[i], names[j]) for i, j in edges]
-    with threadpool_limits(1):  # small matrix products: threaded BLAS costs 3x here (measured)
-        scores = scoring.score_pairs(candidates, ctx.features_path, ctx.db_path, conf.score,
-                                     progress=ctx.progress, seed=conf.seed)
+    scores = scoring.score_pairs(candidates, ctx.features_path, ctx.db_path, conf.score, executor=ctx.executor,
+                                 work_dir=ctx.out_dir / ".sara", progress=ctx.progress, seed=conf.seed)
     timings["scoring"] = time.perf_counter() - tic
 
     tic = time.perf_counter()

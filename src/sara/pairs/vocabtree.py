@@ -23,8 +23,8 @@ import numpy as np
 from tqdm import tqdm
 
 from .. import colmap
-from ..io.h5 import read_features
 from ..io import fingerprint, read_json, write_json_atomic
+from ..io.h5 import read_features
 from ..io.pairs import Pair, canonical_pairs
 from . import PairContext, PairResult
 

@@ -6,7 +6,16 @@ The names most callers need are re-exported here.
 from ..descriptors import l2_normalize as normalize_descriptors
 from ..descriptors import mutual_matches_from_similarity, mutual_nearest_neighbours
 from ..io.scores import CSV_COLUMNS, PairScores, read_scores_csv, write_scores_csv
-from .scorer import REASONS, PairScore, ViewFeatures, load_views, pair_weight, rejection_reason, score_pair, score_pairs
+from .scorer import (
+    REASONS,
+    PairScore,
+    ViewFeatures,
+    load_views,
+    pair_weight,
+    rejection_reason,
+    score_pair,
+    score_pairs,
+)
 from .twoview import (
     FOCAL_SCALES,
     RelativePose,

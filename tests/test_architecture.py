@@ -1,0 +1,126 @@
+"""The house's rules, checked on the source: arrows point down (no module imports a higher layer),
+no import cycle between rooms, pycolmap only in `sara.colmap`, heavy optional packages only inside
+the backends that need them (and never at import time of the package)."""
+
+from __future__ import annotations
+
+import ast
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+SRC = Path(__file__).resolve().parents[1] / "src" / "sara"
+
+#: room -> floor; a room may import rooms on its own floor or below, never above
+FLOORS = {
+    "__init__": 0, "registry": 0, "tables": 0, "descriptors": 0, "config": 0, "execute": 0,
+    "io": 1,
+    "colmap": 2, "weights": 2,
+    "features": 3, "matchers": 3, "scoring": 3, "retrieval": 3, "selection": 3, "evaluation": 3,
+    "execute_ray": 3,
+    "extract": 4, "match": 4, "mapping": 4, "pairs": 4, "gt_pairs": 4, "synthetic": 4,
+    "pipeline": 5, "export": 5,
+    "report": 6, "hloc": 6, "scale": 6,
+    "bench": 7, "demo": 7,
+    "cli": 8, "__main__": 9,
+}
+HEAVY = {"torch", "kornia", "ray", "faiss", "matplotlib"}
+
+
+def _room(module_path: Path) -> str:
+    return module_path.relative_to(SRC).parts[0].removesuffix(".py")
+
+
+def _imports(path: Path) -> list[tuple[str, int, bool]]:
+    """(imported sara room or external top-level name, line, at module level?) of one file."""
+    tree = ast.parse(path.read_text(encoding="utf-8"))
+    package = path.relative_to(SRC.parent).with_suffix("").parts
+    if package[-1] == "__init__":
+        package = package[:-1]
+    else:
+        package = package[:-1]
+    top_level = {id(node) for node in tree.body}
+    out = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            for alias in node.names:
+                parts = alias.name.split(".")
+                out.append((parts[1] if parts[0] == "sara" and len(parts) > 1 else parts[0], node.lineno,
+                            id(node) in top_level))
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = list(package[: len(package) - node.level + 1])
+                parts = base + (node.module.split(".") if node.module else [])
+                if len(parts) == 1:  # `from . import x` at the top of the package: x is a room
+                    out += [(alias.name, node.lineno, id(node) in top_level) for alias in node.names]
+                    continue
+                out.append((parts[1], node.lineno, id(node) in top_level))
+            else:
+                parts = node.module.split(".")
+                out.append((parts[1] if parts[0] == "sara" and len(parts) > 1 else parts[0], node.lineno,
+                            id(node) in top_level))
+    return out
+
+
+def _files() -> list[Path]:
+    return sorted(SRC.rglob("*.py"))
+
+
+def test_every_room_has_a_floor() -> None:
+    rooms = {_room(p) for p in _files()}
+    assert rooms <= set(FLOORS), f"rooms without a floor in this test: {rooms - set(FLOORS)}"
+
+
+def test_arrows_point_down() -> None:
+    upward = []
+    for path in _files():
+        room = _room(path)
+        for target, line, _ in _imports(path):
+            if target in FLOORS and FLOORS[target] > FLOORS[room]:
+                upward.append(f"{path.relative_to(SRC)}:{line} imports {target} (floor {FLOORS[target]} > "
+                              f"{FLOORS[room]})")
+    assert not upward, "\n".join(upward)
+
+
+def test_no_cycle_between_rooms() -> None:
+    edges: dict[str, set[str]] = {}
+    for path in _files():
+        room = _room(path)
+        for target, _, _ in _imports(path):
+            if target in FLOORS and target != room and target != "__init__":
+                edges.setdefault(room, set()).add(target)
+    state: dict[str, int] = {}
+
+    def visit(node: str, trail: list[str]) -> None:
+        state[node] = 1
+        for nxt in sorted(edges.get(node, ())):
+            if state.get(nxt) == 1:
+                pytest.fail("import cycle: " + " -> ".join(trail[trail.index(nxt):] + [nxt]))
+            if nxt not in state:
+                visit(nxt, trail + [nxt])
+        state[node] = 2
+
+    for room in sorted(edges):
+        if room not in state:
+            visit(room, [room])
+
+
+def test_pycolmap_only_in_the_adapter() -> None:
+    outside = [f"{p.relative_to(SRC)}:{line}" for p in _files() if _room(p) != "colmap"
+               for name, line, _ in _imports(p) if name == "pycolmap"]
+    assert not outside, f"pycolmap imported outside sara.colmap: {outside}"
+
+
+def test_heavy_packages_are_imported_inside_functions() -> None:
+    at_module_level = [f"{p.relative_to(SRC)}:{line} {name}" for p in _files()
+                       for name, line, top in _imports(p) if name in HEAVY and top]
+    assert not at_module_level, f"optional heavy packages imported at module level: {at_module_level}"
+
+
+def test_importing_the_cli_loads_no_heavy_package() -> None:
+    code = ("import sys, sara.cli, sara.pipeline, sara.bench; "
+            "print(sorted(m for m in ('torch', 'kornia', 'ray', 'matplotlib') if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "[]"

@@ -1,0 +1,74 @@
+"""A backend is one file: a toy local-feature backend (OpenCV's SIFT, another library than COLMAP's)
+and a toy matcher (mutual nearest neighbours), both defined and registered here, run `sara run`
+end to end through the registries."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from sara import features, matchers
+from sara.cli import main
+from sara.colmap import registered_images
+from sara.descriptors import mutual_nearest_neighbours
+from sara.features import Keypoints
+from sara.io.h5 import Features
+
+
+class ToyOpenCvSift:
+    """OpenCV's SIFT: float descriptors, keypoints from another library than COLMAP."""
+
+    name = "toy-cv-sift"
+
+    def __init__(self, conf) -> None:
+        import cv2
+
+        self.sift = cv2.SIFT_create(nfeatures=conf.max_num_features)
+
+    def extract(self, image: np.ndarray) -> Keypoints:
+        import cv2
+
+        kps, desc = self.sift.detectAndCompute(cv2.cvtColor(image, cv2.COLOR_RGB2GRAY), None)
+        if desc is None:
+            return Keypoints(np.zeros((0, 2), np.float32), np.zeros(0, np.float32), np.zeros((0, 128), np.float32))
+        xy = np.array([k.pt for k in kps], np.float32)  # OpenCV's pixel centres are integers, as hloc's
+        return Keypoints(xy, np.array([k.size for k in kps], np.float32), desc.astype(np.float32))
+
+
+class ToyMutualNN:
+    name = "toy-nn"
+
+    def __init__(self, conf, features: str) -> None:
+        pass
+
+    def match(self, feats0: Features, feats1: Features) -> tuple[np.ndarray, np.ndarray]:
+        return mutual_nearest_neighbours(feats0.descriptors, feats1.descriptors)
+
+
+@pytest.fixture
+def toy_backends():
+    features.BACKENDS.register("toy-cv-sift", ToyOpenCvSift)
+    matchers.BACKENDS.register("toy-nn", ToyMutualNN)
+    yield
+    features.BACKENDS.unregister("toy-cv-sift")
+    matchers.BACKENDS.unregister("toy-nn")
+
+
+def test_toy_backends_run_end_to_end(toy_backends, synthetic_scene, tmp_path: Path) -> None:
+    images, _ = synthetic_scene
+    out = tmp_path / "out"
+    code = main(["run", str(images), str(out), "-q", "--workers", "1", "-s", "extract.backend=toy-cv-sift",
+                 "-s", "match.backend=toy-nn", "--pairs", "exhaustive"])
+    assert code == 0
+    assert (out / "features-toy-cv-sift.h5").is_file()
+    num_images = len(list(images.iterdir()))
+    assert len(registered_images(out / "sparse" / "0")) >= 0.8 * num_images
+
+
+def test_unknown_backend_lists_the_valid_ones(synthetic_scene, tmp_path: Path, capsys) -> None:
+    images, _ = synthetic_scene
+    assert main(["run", str(images), str(tmp_path / "o"), "-q", "-s", "extract.backend=nope"]) == 2
+    err = capsys.readouterr().err
+    assert "unknown local-feature backend 'nope'; choose one of: sift, aliked-n16" in err
