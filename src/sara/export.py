@@ -30,9 +30,10 @@ from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
+from tqdm import tqdm
 
 from .colmap import model
-from .io import read_json, write_text_atomic
+from .io import atomic_path, read_json, write_text_atomic
 
 logger = logging.getLogger(__name__)
 
@@ -57,12 +58,13 @@ APPLIED_TRANSFORM = np.array([[1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0], [0.0, 
 
 
 def export(out_dir: Path, dest: Path, fmt: str = "3dgs", *, model_index: int = 0, images: Path | None = None,
-           undistort: bool = False, max_image_size: int = -1) -> Path:
+           undistort: bool = False, max_image_size: int = -1, progress: bool = True) -> Path:
     """Export model `OUT/sparse/<model_index>` of a sara run to `dest` in format `fmt`; returns `dest`.
 
     images: the image folder (default: the one recorded in `OUT/run.json`).
     undistort: nerfstudio only (3dgs always undistorts, colmap never does).
     max_image_size: with undistortion, also downscale the longer image side to this (px; -1: keep).
+    progress: progress bars over the images.
     Raises FileNotFoundError when OUT has no model or the images are missing, ValueError for a bad format.
     """
     writers: dict[str, Callable[..., None]] = {"3dgs": _export_3dgs, "nerfstudio": _export_nerfstudio,
@@ -76,7 +78,8 @@ def export(out_dir: Path, dest: Path, fmt: str = "3dgs", *, model_index: int = 0
         raise FileNotFoundError(f"image folder {images_root} not found; pass the images the model was made from")
     _check_destination(out_dir, dest, images_root)
     dest.mkdir(parents=True, exist_ok=True)
-    writers[fmt](model_dir, images_root, dest, out_dir=out_dir, undistort=undistort, max_image_size=max_image_size)
+    writers[fmt](model_dir, images_root, dest, out_dir=out_dir, undistort=undistort, max_image_size=max_image_size,
+                 progress=progress)
     logger.info("exported %s (%s) to %s", model_dir, fmt, dest)
     return dest
 
@@ -134,11 +137,12 @@ def flat_names(names: list[str]) -> dict[str, str]:
     return mapping
 
 
-def _export_3dgs(model_dir: Path, images_root: Path, dest: Path, *, max_image_size: int, **_: object) -> None:
-    _undistort_flat(model_dir, images_root, dest, max_image_size)
+def _export_3dgs(model_dir: Path, images_root: Path, dest: Path, *, max_image_size: int, progress: bool,
+                 **_: object) -> None:
+    _undistort_flat(model_dir, images_root, dest, max_image_size, progress)
 
 
-def _undistort_flat(model_dir: Path, images_root: Path, dest: Path, max_image_size: int) -> Path:
+def _undistort_flat(model_dir: Path, images_root: Path, dest: Path, max_image_size: int, progress: bool) -> Path:
     """Undistorted images as `dest/images/<flat name>` and their PINHOLE model in `dest/sparse/0`."""
     names = model.read_model(model_dir).names
     rename = flat_names(names)
@@ -149,7 +153,7 @@ def _undistort_flat(model_dir: Path, images_root: Path, dest: Path, max_image_si
             if folder.exists():
                 shutil.rmtree(folder)
         (dest / "images").mkdir()
-        for name, flat in rename.items():
+        for name, flat in tqdm(rename.items(), desc="undistorted images", unit="img", disable=not progress):
             shutil.move(str(images_dir / name), str(dest / "images" / flat))
         model.write_model(sparse_dir, dest / "sparse" / "0", rename=rename)
     return dest / "sparse" / "0"
@@ -192,15 +196,15 @@ def nerfstudio_transform(rotation: np.ndarray, translation: np.ndarray) -> np.nd
 
 
 def _export_nerfstudio(model_dir: Path, images_root: Path, dest: Path, *, undistort: bool, max_image_size: int,
-                       **_: object) -> None:
+                       progress: bool, **_: object) -> None:
     data = model.read_model(model_dir)
     if undistort or any(c.model not in _NERFSTUDIO_MODELS for c in data.cameras.values()):
-        model_dir = _undistort_flat(model_dir, images_root, dest, max_image_size)
+        model_dir = _undistort_flat(model_dir, images_root, dest, max_image_size, progress)
         data = model.read_model(model_dir)
         rename = {name: name for name in data.names}
     else:
         rename = flat_names(data.names)
-        _copy_images(images_root, dest / "images", rename)
+        _copy_images(images_root, dest / "images", rename, progress)
     meta = nerfstudio_transforms(data, rename)
     write_ply(dest / NERFSTUDIO_PLY, data.points_xyz @ APPLIED_TRANSFORM[:, :3].T, data.points_rgb)
     write_text_atomic(dest / "transforms.json", json.dumps(meta, indent=2) + "\n")
@@ -233,11 +237,11 @@ def nerfstudio_transforms(data: model.ModelData, rename: dict[str, str]) -> dict
     return meta
 
 
-def _copy_images(src_root: Path, dst_root: Path, rename: dict[str, str]) -> None:
+def _copy_images(src_root: Path, dst_root: Path, rename: dict[str, str], progress: bool) -> None:
     if dst_root.exists():
         shutil.rmtree(dst_root)
     dst_root.mkdir(parents=True)
-    for name, flat in rename.items():
+    for name, flat in tqdm(rename.items(), desc="copy images", unit="img", disable=not progress):
         shutil.copy2(src_root / name, dst_root / flat)
 
 
@@ -276,16 +280,16 @@ def _export_colmap(model_dir: Path, images_root: Path, dest: Path, *, out_dir: P
 
 
 def copy_database(src: Path, dst: Path) -> Path:
-    """Copy an SQLite database consistently (its write-ahead log included) with SQLite's backup."""
+    """Copy an SQLite database consistently (its write-ahead log included) with SQLite's backup; atomic."""
     dst = Path(dst)
-    dst.unlink(missing_ok=True)
-    source = sqlite3.connect(f"file:{Path(src).resolve()}?mode=ro", uri=True)
-    target = sqlite3.connect(dst)
-    try:
-        source.backup(target)
-    finally:
-        target.close()
-        source.close()
+    with atomic_path(dst) as tmp:
+        source = sqlite3.connect(f"file:{Path(src).resolve()}?mode=ro", uri=True)
+        target = sqlite3.connect(tmp)
+        try:
+            source.backup(target)
+        finally:
+            target.close()
+            source.close()
     return dst
 
 

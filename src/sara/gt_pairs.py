@@ -24,9 +24,9 @@ from tqdm import tqdm
 
 from . import colmap
 from .descriptors import l2_normalize, mutual_nearest_neighbours
+from .io import fingerprint, read_json, write_json_atomic
 from .io.h5 import read_features
 from .scoring.twoview import sampson_distance, skew
-from .io import fingerprint, read_json, write_json_atomic
 
 logger = logging.getLogger(__name__)
 

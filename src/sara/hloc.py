@@ -33,6 +33,7 @@ from pathlib import Path
 
 import h5py
 import numpy as np
+from tqdm import tqdm
 
 from . import colmap, mapping
 from .colmap import model
@@ -68,11 +69,12 @@ def read_hloc_features(h5: h5py.File, name: str) -> Features:
     return Features(kp, np.ascontiguousarray(desc), scores.reshape(-1), size)  # type: ignore[arg-type]
 
 
-def copy_for_sara(features: Path, names: Sequence[str], dest: Path, *, top_k: int | None) -> dict[str, tuple[int, int]]:
+def copy_for_sara(features: Path, names: Sequence[str], dest: Path, *, top_k: int | None,
+                  progress: bool = True) -> dict[str, tuple[int, int]]:
     """The `top_k` best-scored features of each image into a sara feature file; returns name -> (w, h)."""
     sizes = {}
     with h5py.File(features, "r") as src, atomic_path(dest) as tmp, h5py.File(tmp, "w") as out:
-        for name in names:
+        for name in tqdm(names, desc="read hloc features", unit="img", disable=not progress):
             feats = read_hloc_features(src, name)
             if top_k is not None and len(feats.scores) > top_k:
                 keep = np.sort(np.argsort(-feats.scores, kind="stable")[:top_k])
@@ -103,7 +105,7 @@ def select_pairs(features: Path, pairs_path: Path, *, names: Sequence[str] | Non
     work = Path(work_dir) if work_dir is not None else pairs_path.parent / f"{pairs_path.stem}-sara"
     (work / ".sara").mkdir(parents=True, exist_ok=True)  # the records folder a pipeline run would have made
     local = work / "features.h5"
-    sizes = copy_for_sara(features, names, local, top_k=_top_k(conf))
+    sizes = copy_for_sara(features, names, local, top_k=_top_k(conf), progress=progress)
     db_path = work / "cameras.db"
     model.create_database(db_path, sizes, camera_model=conf.extract.camera_model,
                           focal_length_factor=conf.extract.default_focal_length_factor)
@@ -204,9 +206,10 @@ def read_hloc_matches(h5: h5py.File, name0: str, name1: str, *, min_score: float
     raise ValueError(f"pair ({name0}, {name1}) is not in {h5.filename}: matched with another pairs file?")
 
 
-def _pair_matches(matches: Path, pairs: list[Pair], min_score: float | None) -> Iterator[tuple[str, str, np.ndarray]]:
+def _pair_matches(matches: Path, pairs: list[Pair], min_score: float | None,
+                  progress: bool) -> Iterator[tuple[str, str, np.ndarray]]:
     with h5py.File(matches, "r") as h5:
-        for name0, name1 in pairs:
+        for name0, name1 in tqdm(pairs, desc="import hloc matches", unit="pair", disable=not progress):
             yield name0, name1, read_hloc_matches(h5, name0, name1, min_score=min_score)
 
 
@@ -236,7 +239,7 @@ def reconstruct(image_dir: Path, features: Path, matches: Path, pairs_path: Path
     with h5py.File(features, "r") as h5:
         keypoints = {n: colmap.hloc_to_colmap_keypoints(read_hloc_features(h5, n).keypoints) for n in names}
     model.write_keypoints(db_path, keypoints)
-    model.write_matches(db_path, _pair_matches(matches, pairs, min_match_score))
+    model.write_matches(db_path, _pair_matches(matches, pairs, min_match_score, progress))
     num_verified = model.verify_matches(db_path, Path(pairs_path), min_num_inliers=conf.match.min_num_inliers)
     logger.info("hloc import: %d images, %d pairs, %d verified", len(names), len(pairs), num_verified)
     key = fingerprint({"files": [_stat(p) for p in (features, matches, Path(pairs_path))], "mode": camera_mode,

@@ -14,8 +14,8 @@ from pathlib import Path
 from tqdm import tqdm
 
 from . import colmap
-from .io import records
 from .config import MapConfig
+from .io import records
 
 logger = logging.getLogger(__name__)
 

@@ -43,6 +43,7 @@ from .io import (
 from .io.images import ImageSet, scan_images, upright_copy
 from .io.pairs import read_pairs, write_pairs
 from .pairs import SOURCES, PairContext, get_after_mapping, get_source
+from .tables import markdown_table
 
 logger = logging.getLogger(__name__)
 
@@ -384,22 +385,23 @@ def _link_or_copy(src: Path, dst: Path) -> None:
 def render_report(report: RunReport) -> str:
     """A short human-readable summary of a run (Markdown)."""
     s = report.stages
+    ex, pr, ma, mp = s.get("extract", {}), s.get("pairs", {}), s.get("match", {}), s.get("map", {})
+    added = pr.get("num_added_after_mapping", 0)
+    rows = [
+        [f"extract ({ex.get('backend', 'sift')})", f"{ex.get('time_s', 0):.1f}",
+         f"{ex.get('keypoints_mean', 0):.0f} keypoints per image"],
+        [f"pairs ({pr.get('method')})", f"{pr.get('time_s', 0):.1f}",
+         f"{pr.get('num_pairs', 0)} pairs ({100 * pr.get('fraction_of_exhaustive', 0):.1f}% of exhaustive)"
+         + (f", {added} of them added after mapping" if added else "")],
+        [f"match ({ma.get('matcher', '')})", f"{ma.get('time_s', 0):.1f}",
+         f"{ma.get('num_verified_pairs', 0)} verified pairs, "
+         f"{ma.get('inlier_matches_per_pair_mean', 0):.0f} inlier matches per pair"],
+        ["map", f"{mp.get('time_s', 0):.1f}",
+         f"{mp.get('num_components', 0)} model(s): {mp.get('component_sizes', [])} images registered"],
+    ]
     lines = [f"# sara run: {report.out_dir.name}", "",
              f"Images: {s['images']['num_images']} used, {s['images']['num_skipped']} skipped "
-             f"(from `{report.images_root}`)", ""]
-    lines += ["| stage | time (s) | result |", "|---|---:|---|"]
-    ex, pr, ma, mp = s.get("extract", {}), s.get("pairs", {}), s.get("match", {}), s.get("map", {})
-    lines.append(f"| extract ({ex.get('backend', 'sift')}) | {ex.get('time_s', 0):.1f} | "
-                 f"{ex.get('keypoints_mean', 0):.0f} keypoints per image |")
-    added = pr.get("num_added_after_mapping", 0)
-    lines.append(f"| pairs ({pr.get('method')}) | {pr.get('time_s', 0):.1f} | {pr.get('num_pairs', 0)} pairs "
-                 f"({100 * pr.get('fraction_of_exhaustive', 0):.1f}% of exhaustive)"
-                 + (f", {added} of them added after mapping" if added else "") + " |")
-    lines.append(f"| match ({ma.get('matcher', '')}) | {ma.get('time_s', 0):.1f} | "
-                 f"{ma.get('num_verified_pairs', 0)} verified pairs, "
-                 f"{ma.get('inlier_matches_per_pair_mean', 0):.0f} inlier matches per pair |")
-    lines.append(f"| map | {mp.get('time_s', 0):.1f} | {mp.get('num_components', 0)} model(s): "
-                 f"{mp.get('component_sizes', [])} images registered |")
+             f"(from `{report.images_root}`)", "", markdown_table(["stage", "time (s)", "result"], rows)]
     if report.skipped_images:
         lines += ["", "Skipped images:", ""] + [f"- `{n}`: {r}" for n, r in report.skipped_images.items()]
     if report.metrics:

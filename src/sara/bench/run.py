@@ -25,10 +25,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from .. import extract
+from .. import extract, pipeline
 from ..config import PipelineConfig, apply_overrides
 from ..io import OutputLock, fingerprint, records
-from .. import pipeline
 from .tables import (
     ABLATION_COLUMNS,
     ABLATION_NOTE,
