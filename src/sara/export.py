@@ -32,6 +32,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from . import colmap
 from .colmap import model
 from .io import atomic_path, read_json, write_text_atomic
 
@@ -58,13 +59,15 @@ APPLIED_TRANSFORM = np.array([[1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0], [0.0, 
 
 
 def export(out_dir: Path, dest: Path, fmt: str = "3dgs", *, model_index: int = 0, images: Path | None = None,
-           undistort: bool = False, max_image_size: int = -1, progress: bool = True) -> Path:
+           undistort: bool = False, max_image_size: int = -1, progress: bool = True,
+           verbose_colmap: bool = False) -> Path:
     """Export model `OUT/sparse/<model_index>` of a sara run to `dest` in format `fmt`; returns `dest`.
 
     images: the image folder (default: the one recorded in `OUT/run.json`).
     undistort: nerfstudio only (3dgs always undistorts, colmap never does).
     max_image_size: with undistortion, also downscale the longer image side to this (px; -1: keep).
     progress: progress bars over the images.
+    verbose_colmap: COLMAP's own log (the undistorter's) on the console instead of `OUT/logs`.
     Raises FileNotFoundError when OUT has no model or the images are missing, ValueError for a bad format.
     """
     writers: dict[str, Callable[..., None]] = {"3dgs": _export_3dgs, "nerfstudio": _export_nerfstudio,
@@ -78,6 +81,7 @@ def export(out_dir: Path, dest: Path, fmt: str = "3dgs", *, model_index: int = 0
         raise FileNotFoundError(f"image folder {images_root} not found; pass the images the model was made from")
     _check_destination(out_dir, dest, images_root)
     dest.mkdir(parents=True, exist_ok=True)
+    colmap.send_log_to(out_dir / "logs", verbose=verbose_colmap)
     writers[fmt](model_dir, images_root, dest, out_dir=out_dir, undistort=undistort, max_image_size=max_image_size,
                  progress=progress)
     logger.info("exported %s (%s) to %s", model_dir, fmt, dest)
