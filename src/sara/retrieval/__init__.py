@@ -49,7 +49,8 @@ class GlobalDescriptor(Protocol):
 DESCRIPTORS: Registry = Registry("global descriptor", {
     "vlad": "sara.retrieval.vlad:VladDescriptor",
     "bow": "sara.retrieval.vlad:BowDescriptor",
-    "dinov2": "sara.retrieval.dinov2:DinoV2Descriptor",
+    "dinov2": "sara.retrieval.learned:DinoV2Descriptor",
+    "aliked-gem": "sara.retrieval.learned:AlikedGemDescriptor",
 })
 
 
