@@ -45,11 +45,13 @@ class ExtractConfig:
 class RetrievalConfig:
     """Global descriptors and the cosine kNN that proposes candidate pairs."""
 
-    descriptor: str = "vlad"  # vlad | dinov2 (needs local weights)
+    descriptor: str = "vlad"  # vlad | bow | dinov2 | aliked-gem (learned: local weights, `sara weights`)
     num_neighbors: int = 20  # k: nearest neighbours kept per image (the union is symmetric)
     codebook_size: int = 64  # VLAD visual words, learned from the collection itself
     features_per_image: int = 1000  # RootSIFT descriptors per image used for VLAD (largest scale first)
-    weights: str = ""  # local weights file for learned descriptors
+    weights: str = ""  # local weights file for learned descriptors (dinov2, aliked-gem)
+    device: str = "auto"  # learned descriptors: auto | cpu | cuda
+    image_size: int = 448  # learned descriptors: longer image side in pixels
 
 
 @dataclass(frozen=True, kw_only=True)
