@@ -108,7 +108,7 @@ def test_sara_report_renders_in_chromium(sara_run: Path, tmp_path: Path):
 def test_report_without_scores_or_model_renders(bare_run: Path, tmp_path: Path):
     page = write_report(bare_run)
     text = page.read_text(encoding="utf-8")
-    assert "force-directed layout" in text and "does not score pairs" in text and "No model was built" in text
+    assert "force-directed layout" in text and "only the SARA pair source scores pairs" in text and "No model was built" in text
     status = open_in_chromium(page, tmp_path)
     assert status["errors"] == [] and status["broken"] == []
     assert status["edges"] == len(load_run(bare_run).pairs)

@@ -455,8 +455,8 @@ def histogram_svg(values: np.ndarray, groups: Sequence[tuple[str, np.ndarray, st
 def _scores_section(data: RunData) -> str:
     s = data.scores
     if s is None:
-        return _section("Pre-matching scores", f"<p>The pair source <b>{_esc(data.method)}</b> does not score "
-                        "pairs before matching (no scores.csv).</p>")
+        return _section("Pre-matching scores", "<p>No scores.csv: only the SARA pair source scores pairs before "
+                        f"matching, and this run's pairs came from <b>{_esc(data.method)}</b>.</p>")
     score_conf = data.config.get("score", {})
     selected = np.array([r in SELECTED_ROLES for r in s.role], dtype=bool)
     split = [("accepted", s.accepted, "#4c78a8"), ("rejected", ~s.accepted, "#e45756")]
