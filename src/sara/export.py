@@ -24,7 +24,6 @@ from __future__ import annotations
 import json
 import logging
 import shutil
-import sqlite3
 import tempfile
 from collections.abc import Callable
 from pathlib import Path
@@ -34,7 +33,7 @@ from tqdm import tqdm
 
 from . import colmap
 from .colmap import model
-from .io import atomic_path, read_json, write_text_atomic
+from .io import read_json, write_text_atomic
 
 logger = logging.getLogger(__name__)
 
@@ -274,27 +273,13 @@ def _export_colmap(model_dir: Path, images_root: Path, dest: Path, *, out_dir: P
     db_src = out_dir / "database.db"
     if not db_src.exists():
         raise FileNotFoundError(f"{db_src} not found: the colmap export needs the run's database")
-    copy_database(db_src, dest / "database.db")
+    colmap.copy_database(db_src, dest / "database.db")
     if (dest / "sparse").exists():
         shutil.rmtree(dest / "sparse")
     for src in model.find_models(out_dir / "sparse"):
         model.write_model(src, dest / "sparse" / src.name)
     config = read_json(out_dir / "run.json").get("config", {}) if (out_dir / "run.json").exists() else {}
     write_text_atomic(dest / "project.ini", project_ini(dest / "database.db", images_root, config))
-
-
-def copy_database(src: Path, dst: Path) -> Path:
-    """Copy an SQLite database consistently (its write-ahead log included) with SQLite's backup; atomic."""
-    dst = Path(dst)
-    with atomic_path(dst) as tmp:
-        source = sqlite3.connect(f"file:{Path(src).resolve()}?mode=ro", uri=True)
-        target = sqlite3.connect(tmp)
-        try:
-            source.backup(target)
-        finally:
-            target.close()
-            source.close()
-    return dst
 
 
 def project_ini(database: Path, images_root: Path, config: dict) -> str:

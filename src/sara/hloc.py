@@ -107,7 +107,7 @@ def select_pairs(features: Path, pairs_path: Path, *, names: Sequence[str] | Non
     local = work / "features.h5"
     sizes = copy_for_sara(features, names, local, top_k=_top_k(conf), progress=progress)
     db_path = work / "cameras.db"
-    model.create_database(db_path, sizes, camera_model=conf.extract.camera_model,
+    model.database_from_sizes(db_path, sizes, camera_model=conf.extract.camera_model,
                           focal_length_factor=conf.extract.default_focal_length_factor)
     ctx = PairContext(names=list(names), images_root=Path(image_dir) if image_dir else features.parent,
                       features_path=local, db_path=db_path, out_dir=work, conf=conf, progress=progress)
@@ -207,10 +207,10 @@ def read_hloc_matches(h5: h5py.File, name0: str, name1: str, *, min_score: float
 
 
 def _pair_matches(matches: Path, pairs: list[Pair], min_score: float | None,
-                  progress: bool) -> Iterator[tuple[str, str, np.ndarray]]:
+                  progress: bool) -> Iterator[tuple[Pair, np.ndarray]]:
     with h5py.File(matches, "r") as h5:
         for name0, name1 in tqdm(pairs, desc="import hloc matches", unit="pair", disable=not progress):
-            yield name0, name1, read_hloc_matches(h5, name0, name1, min_score=min_score)
+            yield (name0, name1), read_hloc_matches(h5, name0, name1, min_score=min_score)
 
 
 def reconstruct(image_dir: Path, features: Path, matches: Path, pairs_path: Path, out_dir: Path, *,
@@ -238,9 +238,10 @@ def reconstruct(image_dir: Path, features: Path, matches: Path, pairs_path: Path
                          default_focal_length_factor=conf.extract.default_focal_length_factor)
     with h5py.File(features, "r") as h5:
         keypoints = {n: colmap.hloc_to_colmap_keypoints(read_hloc_features(h5, n).keypoints) for n in names}
-    model.write_keypoints(db_path, keypoints)
-    model.write_matches(db_path, _pair_matches(matches, pairs, min_match_score, progress))
-    num_verified = model.verify_matches(db_path, Path(pairs_path), min_num_inliers=conf.match.min_num_inliers)
+    colmap.write_keypoints(db_path, keypoints)
+    colmap.write_matches(db_path, dict(_pair_matches(matches, pairs, min_match_score, progress)))
+    colmap.verify_pairs(db_path, Path(pairs_path), min_num_inliers=conf.match.min_num_inliers)
+    num_verified = len(model.database_pairs(db_path)[1])
     logger.info("hloc import: %d images, %d pairs, %d verified", len(names), len(pairs), num_verified)
     key = fingerprint({"files": [_stat(p) for p in (features, matches, Path(pairs_path))], "mode": camera_mode,
                        "min_score": min_match_score})

@@ -1,7 +1,7 @@
-"""COLMAP models as plain numpy data, and the few model and database writes that exports need.
+"""COLMAP models as plain numpy data, and the model and database writes that exports need.
 
-Every pycolmap call that `sara.export`, `sara.report` and `sara.hloc` make is here, so a pycolmap
-rename is mended in this one file. Conventions (COLMAP's):
+The pycolmap calls of `sara.export`, `sara.report` and `sara.hloc` that `sara.colmap` itself does
+not offer are here, so a pycolmap rename is mended inside this package. Conventions (COLMAP's):
 
 - poses are ``cam_from_world``: ``x_cam = R @ X_world + t``; camera centres ``C = -R.T @ t``;
 - camera axes x right, y down, z forward (OpenCV);
@@ -12,14 +12,14 @@ from __future__ import annotations
 
 import shutil
 import tempfile
-from collections.abc import Iterable, Mapping
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import pycolmap
 
-MODEL_FILES = ("cameras", "images", "points3D")
+from . import has_model
 
 
 @dataclass(frozen=True)
@@ -61,12 +61,6 @@ class ModelData:
 
     def camera_of(self, index: int) -> Intrinsics:
         return self.cameras[int(self.camera_ids[index])]
-
-
-def has_model(path: Path) -> bool:
-    """Whether `path` holds a COLMAP model (binary or text)."""
-    path = Path(path)
-    return any(all((path / f"{stem}{ext}").is_file() for stem in MODEL_FILES) for ext in (".bin", ".txt"))
 
 
 def find_models(sparse_dir: Path) -> list[Path]:
@@ -159,22 +153,12 @@ def _existing_parent(path: Path) -> Path:
 # ---------------------------------------------------------------------------------------------
 
 
-def prior_intrinsics(width: int, height: int, *, camera_model: str = "SIMPLE_RADIAL",
-                     focal_length_factor: float = 1.2) -> np.ndarray:
-    """COLMAP's prior for an image without EXIF focal: f = factor * max(w, h), centred, no distortion.
-
-    Returns the (P,) parameters of `camera_model` in COLMAP's order.
-    """
-    camera = _prior_camera(width, height, camera_model, focal_length_factor)
-    return np.asarray(camera.params, dtype=np.float64).copy()
-
-
 def _prior_camera(width: int, height: int, camera_model: str, focal_length_factor: float) -> pycolmap.Camera:
     focal = float(focal_length_factor) * max(int(width), int(height))
     return pycolmap.Camera.create_from_model_name(0, camera_model, focal, int(width), int(height))
 
 
-def create_database(db_path: Path, image_sizes: Mapping[str, tuple[int, int]], *,
+def database_from_sizes(db_path: Path, image_sizes: Mapping[str, tuple[int, int]], *,
                     camera_model: str = "SIMPLE_RADIAL", focal_length_factor: float = 1.2) -> dict[str, int]:
     """A new database with one camera per image (COLMAP's focal prior), a trivial rig and frame each.
 
@@ -203,61 +187,6 @@ def create_database(db_path: Path, image_sizes: Mapping[str, tuple[int, int]], *
     return ids
 
 
-def write_keypoints(db_path: Path, keypoints: Mapping[str, np.ndarray]) -> None:
-    """Store (K, 2) keypoints (COLMAP's pixel convention) of images already in the database.
-
-    Existing keypoints of those images are replaced.
-    """
-    db = pycolmap.Database.open(str(db_path))
-    try:
-        ids = {im.name: im.image_id for im in db.read_all_images()}
-        for name, xy in keypoints.items():
-            data = np.ascontiguousarray(np.asarray(xy, dtype=np.float32).reshape(-1, 2))
-            if db.exists_keypoints(ids[name]):
-                db.update_keypoints(ids[name], data)
-            else:
-                db.write_keypoints(ids[name], data)
-    finally:
-        db.close()
-
-
-def write_matches(db_path: Path, matches: Iterable[tuple[str, str, np.ndarray]]) -> int:
-    """Store raw matches (name0, name1, (K, 2) keypoint indices) of image pairs; returns how many pairs.
-
-    A pair's earlier matches and two-view geometry are replaced.
-    """
-    count = 0
-    db = pycolmap.Database.open(str(db_path))
-    try:
-        ids = {im.name: im.image_id for im in db.read_all_images()}
-        for name0, name1, m in matches:
-            id0, id1 = ids[name0], ids[name1]
-            if db.exists_two_view_geometry(id0, id1):
-                db.delete_two_view_geometry(id0, id1)
-            if db.exists_matches(id0, id1):
-                db.delete_matches(id0, id1)
-            db.write_matches(id0, id1, np.ascontiguousarray(np.asarray(m).reshape(-1, 2), dtype=np.uint32))
-            count += 1
-    finally:
-        db.close()
-    return count
-
-
-def verify_matches(db_path: Path, pairs_path: Path, *, min_num_inliers: int = 15) -> int:
-    """COLMAP's geometric verification of the stored matches of the pairs in a pairs file.
-
-    Returns the number of pairs with a verified two-view geometry in the database afterwards.
-    """
-    options = pycolmap.TwoViewGeometryOptions()
-    options.min_num_inliers = int(min_num_inliers)
-    pycolmap.verify_matches(str(db_path), str(pairs_path), options=options)
-    db = pycolmap.Database.open(str(db_path))
-    try:
-        return int(db.num_verified_image_pairs())
-    finally:
-        db.close()
-
-
 def database_pairs(db_path: Path) -> tuple[list[str], dict[tuple[str, str], int]]:
     """Image names of a database (sorted) and its verified pairs: (name0, name1) with name0 < name1 -> inliers."""
     db = pycolmap.Database.open(str(db_path))
@@ -274,7 +203,3 @@ def database_pairs(db_path: Path) -> tuple[list[str], dict[tuple[str, str], int]
         verified[(a, b)] = int(count)
     return sorted(names.values()), verified
 
-
-def num_registered(path: Path) -> int:
-    """Registered images of the model in `path`."""
-    return int(_read(path).num_reg_images())

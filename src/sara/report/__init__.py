@@ -20,6 +20,7 @@ from typing import Any
 
 import numpy as np
 
+from .. import colmap
 from ..colmap import model
 from ..export import recorded_images_root
 from ..io import read_json
@@ -122,7 +123,7 @@ def load_run(out_dir: Path) -> RunData:
     models = model.find_models(out_dir / "sparse")
     if models:
         data.model = model.read_model(models[0])
-        data.model_sizes = [len(data.model.names)] + [model.num_registered(m) for m in models[1:]]
+        data.model_sizes = [len(data.model.names)] + [colmap.num_registered(colmap.read_model(m)) for m in models[1:]]
     _load_metrics(data)
     data.names = sorted(set(data.names) | _names_in(data))
     data.images_root = _images_root(data)
