@@ -108,7 +108,7 @@ def select_pairs(features: Path, pairs_path: Path, *, names: Sequence[str] | Non
     sizes = copy_for_sara(features, names, local, top_k=_top_k(conf), progress=progress)
     db_path = work / "cameras.db"
     model.database_from_sizes(db_path, sizes, camera_model=conf.extract.camera_model,
-                          focal_length_factor=conf.extract.default_focal_length_factor)
+                              focal_length_factor=conf.extract.default_focal_length_factor)
     ctx = PairContext(names=list(names), images_root=Path(image_dir) if image_dir else features.parent,
                       features_path=local, db_path=db_path, out_dir=work, conf=conf, progress=progress)
     result = get_source("sara")(ctx)

@@ -159,7 +159,7 @@ def _prior_camera(width: int, height: int, camera_model: str, focal_length_facto
 
 
 def database_from_sizes(db_path: Path, image_sizes: Mapping[str, tuple[int, int]], *,
-                    camera_model: str = "SIMPLE_RADIAL", focal_length_factor: float = 1.2) -> dict[str, int]:
+                        camera_model: str = "SIMPLE_RADIAL", focal_length_factor: float = 1.2) -> dict[str, int]:
     """A new database with one camera per image (COLMAP's focal prior), a trivial rig and frame each.
 
     image_sizes: name -> (width, height) in pixels. Replaces an existing file; returns name -> image_id.
