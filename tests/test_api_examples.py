@@ -28,106 +28,6 @@ from test_hloc import match_mutual_nn, write_superpoint_like
 README = Path(__file__).resolve().parents[1] / "README.md"
 SECTIONS = ("Use with 3DGS / nerfstudio / hloc / COLMAP", "Python API")
 
-DRAFT = '''
-## Use with 3DGS / nerfstudio / hloc / COLMAP
-
-`sara run` leaves a COLMAP model (`out/sparse/0`, SIMPLE_RADIAL cameras, the original images).
-`sara export` writes it in the layout each tool reads (`sara run IMAGES OUT --export 3dgs` does both
-in one go, into `OUT/3dgs`):
-
-```bash
-sara export out/ gs/ --format 3dgs              # gs/images (undistorted), gs/sparse/0 (PINHOLE cameras)
-sara export out/ ns/ --format nerfstudio        # ns/transforms.json, ns/images, ns/sparse_pc.ply
-sara export out/ colmap_project/ --format colmap  # database.db, sparse/0, project.ini
-sara report out/                                # out/report.html: why these pairs, what came of them
-```
-
-**3D Gaussian Splatting** accepts only undistorted PINHOLE / SIMPLE_PINHOLE models; the export
-undistorts the images with COLMAP's undistorter (`--max-image-size 1600` also downsizes them). In a
-clone of graphdeco-inria/gaussian-splatting:
-
-```bash
-python train.py -s gs/
-```
-
-**nerfstudio** reads the export with its default `nerfstudio-data` parser (OpenCV camera model with
-COLMAP's distortion, `applied_transform`, the points for splatfacto's initialisation); neither
-ffmpeg nor a colmap binary is needed:
-
-```bash
-ns-train splatfacto --data ns/
-```
-
-**hloc**: SARA selects the pairs from the features hloc already extracted (SuperPoint, DISK,
-ALIKED, ... any local features), in place of `pairs_from_exhaustive` or `pairs_from_retrieval`;
-hloc then matches them as usual. `sara.hloc.reconstruct` imports hloc's matches into a COLMAP
-database and maps with sara's settings (hloc's own `reconstruction.main` works as well):
-
-```python
-from pathlib import Path
-
-from hloc import extract_features, match_features
-from sara import hloc as sara_hloc
-
-images, outputs = Path("images"), Path("outputs")
-feature_conf = extract_features.confs["superpoint_aachen"]
-matcher_conf = match_features.confs["superpoint+lightglue"]
-features = extract_features.main(feature_conf, images, outputs)
-pairs = sara_hloc.select_pairs(features, outputs / "pairs-sara.txt")
-matches = match_features.main(matcher_conf, pairs, feature_conf["output"], outputs)
-model_dir = sara_hloc.reconstruct(images, features, matches, pairs, outputs / "sfm")
-```
-
-SARA's scores and its global descriptors (hloc's layout: one group per image holding
-`global_descriptor`) are left in `outputs/pairs-sara-sara/`.
-
-**COLMAP** 4.x opens the export (the database has COLMAP 4's rig and frame tables, which
-Debian's colmap 3.8 cannot read; the models in `sparse/` are readable by 3.8 too):
-
-```bash
-colmap gui --project_path colmap_project/project.ini
-colmap gui --import_path colmap_project/sparse/0 --database_path colmap_project/database.db --image_path path/to/images
-```
-
-## Python API
-
-Every stage is a function; the functions that write files return their paths.
-
-```python
-from pathlib import Path
-
-from sara.config import make_config
-from sara.pipeline import run
-
-report = run(make_config("sift-offline"), Path("images"), Path("out"))  # resumes like `sara run`
-model_dir = Path("out/sparse/0")
-print(report.stages["pairs"]["num_pairs"], "pairs matched;", report.stages["map"]["num_registered"], "images posed")
-```
-
-Only the pairs (SARA's by default; `pairs.method` takes the other sources or a pairs file), with
-any configuration value set as on the command line:
-
-```python
-conf = make_config("sift-offline", {"pairs.method": "sara", "retrieval.num_neighbors": 10})
-run(conf, Path("images"), Path("pairs_only"), stop_after="pairs")
-pairs_txt = Path("pairs_only/pairs.txt")  # `name0 name1` per line, for hloc or COLMAP's matches_importer
-```
-
-Accuracy against known poses, the exports and the report:
-
-```python
-from sara.evaluation import evaluate
-from sara.export import export
-from sara.report.html import write_report
-
-metrics = evaluate(Path("out/sparse"), Path("gt"), Path("out/metrics.json"))
-print(f"AUC@5: {metrics['auc']['5']:.3f}")
-gs_dir = export(Path("out"), Path("gs"), "3dgs")
-ns_dir = export(Path("out"), Path("ns"), "nerfstudio")
-colmap_dir = export(Path("out"), Path("colmap_project"), "colmap")
-report_html = write_report(Path("out"))
-```
-'''
 
 
 def python_blocks(markdown: str) -> list[str]:
@@ -142,8 +42,7 @@ def python_blocks(markdown: str) -> list[str]:
 
 
 def examples_source() -> str:
-    text = README.read_text(encoding="utf-8") if README.exists() else ""
-    return text if all(f"## {t}\n" in text for t in SECTIONS) else DRAFT
+    return README.read_text(encoding="utf-8")
 
 
 def fake_hloc(gt_dir: Path) -> types.ModuleType:
@@ -198,6 +97,6 @@ def test_readme_python_examples_run(synthetic_scene, tmp_path: Path, monkeypatch
 
 
 def test_draft_has_the_sections():
-    assert len(python_blocks(DRAFT)) == 4
+    assert len(python_blocks(examples_source())) == 4
     with pytest.raises(AssertionError, match="missing"):
         python_blocks("## Python API\n```python\npass\n```\n")

@@ -48,6 +48,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="pair source: sara (default), exhaustive, sequential, vocab_tree, retrieval, or a pairs file")
     p.add_argument("--mapper", choices=["incremental", "global"], help="COLMAP mapper (default incremental)")
     p.add_argument("--gt", type=Path, help="ground-truth model folder: evaluate the result against it")
+    p.add_argument("--export", choices=["3dgs", "nerfstudio", "colmap"],
+                   help="also export the model into OUT/<format> (see `sara export`)")
     _add_common(p)
     _add_output(p)
 
@@ -81,6 +83,23 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("model", type=Path, help="a model folder, a sparse/ folder, or a sara output folder")
     p.add_argument("gt", type=Path, help="ground-truth model folder (COLMAP text or binary)")
     p.add_argument("--json", type=Path, help="also write the metrics to this JSON file")
+    _add_output(p)
+
+    p = sub.add_parser("export", help="write a run's model for 3DGS, nerfstudio or COLMAP's GUI")
+    p.add_argument("out", type=Path, help="an output folder of `sara run`")
+    p.add_argument("dest", type=Path, help="folder to write the export into (created)")
+    p.add_argument("--format", required=True, choices=["3dgs", "nerfstudio", "colmap"],
+                   help="3dgs: undistorted images + PINHOLE sparse/0; nerfstudio: transforms.json + images; "
+                        "colmap: database, models and project.ini")
+    p.add_argument("--model", type=int, default=0, help="which model of OUT/sparse (default 0, the largest)")
+    p.add_argument("--images", type=Path, help="image folder (default: the one recorded in OUT/run.json)")
+    p.add_argument("--undistort", action="store_true", help="nerfstudio: undistorted images (3dgs always)")
+    p.add_argument("--max-image-size", type=int, default=-1,
+                   help="with undistortion: longer image side at most this many pixels")
+    _add_output(p)
+
+    p = sub.add_parser("report", help="(re)write OUT/report.html")
+    p.add_argument("out", type=Path, help="an output folder of `sara run`")
     _add_output(p)
 
     p = sub.add_parser("demo", help="offline self-test: synthesise a scene, reconstruct it, evaluate")
@@ -140,7 +159,16 @@ def _cmd_run(args: argparse.Namespace, stop_after: str | None = None) -> None:
     report = run(_config(args), args.images, args.out, gt_dir=getattr(args, "gt", None), overwrite=args.overwrite,
                  progress=not args.quiet, verbose_colmap=args.verbose, stop_after=stop_after)
     if stop_after is None:
+        from .report.html import write_report
+
         print((args.out / "report.md").read_text(encoding="utf-8"))
+        print(f"report: {write_report(args.out)}")
+        if getattr(args, "export", None):
+            from .export import export
+
+            dest = export(args.out, args.out / args.export, args.export, progress=not args.quiet,
+                          verbose_colmap=args.verbose)
+            print(f"{args.export} export -> {dest}")
     elif stop_after == "pairs":
         info = report.stages["pairs"]
         print(f"{info['num_pairs']} pairs ({100 * info['fraction_of_exhaustive']:.1f}% of exhaustive) "
@@ -176,6 +204,21 @@ def _cmd_evaluate(args: argparse.Namespace) -> None:
     print(format_table(metrics))
 
 
+def _cmd_export(args: argparse.Namespace) -> None:
+    from .export import export
+
+    dest = export(args.out, args.dest, args.format, model_index=args.model, images=args.images,
+                  undistort=args.undistort, max_image_size=args.max_image_size, progress=not args.quiet,
+                  verbose_colmap=args.verbose)
+    print(f"{args.format} export of {args.out / 'sparse' / str(args.model)} -> {dest}")
+
+
+def _cmd_report(args: argparse.Namespace) -> None:
+    from .report.html import write_report
+
+    print(f"report: {write_report(args.out)}")
+
+
 def _cmd_demo(args: argparse.Namespace) -> None:
     from .demo import run_demo
 
@@ -208,6 +251,7 @@ def main(argv: list[str] | None = None) -> int:
     commands = {
         "run": _cmd_run, "extract": lambda a: _cmd_run(a, "extract"), "pairs": lambda a: _cmd_run(a, "pairs"),
         "match": _cmd_match, "map": _cmd_map, "evaluate": _cmd_evaluate, "demo": _cmd_demo,
+        "export": _cmd_export, "report": _cmd_report,
     }
     commands["bench"] = _cmd_bench
     from . import weights

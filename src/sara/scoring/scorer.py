@@ -295,6 +295,8 @@ def score_pairs(
     index1 = np.array([row[b] for _, b in pairs], dtype=np.int64)
     if executor is None or len(pairs) < 2 * SHARD_PAIRS:
         executor = SerialExecutor()
+    if work_dir is not None:
+        Path(work_dir).mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(prefix="score-views-", dir=work_dir) as tmp:
         store = ViewStore.write(Path(tmp), names, features_path, db_path, conf.num_keypoints, progress=progress)
         start = time.perf_counter()
