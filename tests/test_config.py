@@ -38,3 +38,12 @@ def test_parse_override_args():
     assert parse_override_args(["a.b=1", "c = x"]) == {"a.b": "1", "c": "x"}
     with pytest.raises(ValueError, match="key=value"):
         parse_override_args(["oops"])
+
+
+def test_tuple_options_are_set_with_commas() -> None:
+    from sara.config import make_config
+
+    conf = make_config("sift-offline", {"graph.loop_scale_fractions": "0.5,0.25,0.25"})
+    assert conf.graph.loop_scale_fractions == (0.5, 0.25, 0.25)
+    with pytest.raises(ValueError, match="graph.loop_scale_fractions"):
+        make_config("sift-offline", {"graph.loop_scale_fractions": "0.5,x,0.25"})

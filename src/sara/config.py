@@ -241,6 +241,10 @@ PRESETS: dict[str, dict[str, Any]] = {
 
 
 def _parse_value(raw: str, typ: Any, key: str) -> Any:
+    if isinstance(typ, str) and typ.startswith("tuple["):  # "0.5,0.25,0.25" or "(0.5, 0.25, 0.25)"
+        item = typ[len("tuple["):].split(",")[0].strip().rstrip("]")
+        parts = [p for p in raw.strip().strip("()[]").split(",") if p.strip()]
+        return tuple(_parse_value(p.strip(), item, key) for p in parts)
     if isinstance(typ, str):
         typ = {"int": int, "float": float, "bool": bool, "str": str}.get(typ, str)
     origin = typing.get_origin(typ)
