@@ -1,0 +1,60 @@
+#!/usr/bin/env bash
+# The learned-feature rows of docs/BENCHMARKS.md ("Learned features and LightGlue"): `sara bench`
+# with the presets aliked-lightglue, disk-lightglue and xfeat-lighterglue.
+#
+#   scripts/learned_bench.sh JOB
+#
+# JOB (each one is a plain `sara bench` command, printed before it runs; re-running a JOB resumes:
+# finished methods are skipped, matching resumes pair by pair):
+#   aliked-headline-fast  ALIKED+LightGlue, bm-moldGoldCape, sara and retrieval
+#   aliked-headline       ALIKED+LightGlue, bm-moldGoldCape, exhaustive too (hours on 2 cores)
+#   xfeat-small           XFeat+LighterGlue, the five smaller scenes, exhaustive/retrieval/sara
+#   xfeat-big-fast        XFeat+LighterGlue, bm-moldGoldCape, sara and retrieval
+#   xfeat-big             XFeat+LighterGlue, bm-moldGoldCape, exhaustive too
+#   aliked-small          ALIKED+LightGlue, the five smaller scenes, exhaustive/retrieval/sara
+#   disk-headline-fast    DISK+LightGlue, bm-moldGoldCape, sara and retrieval
+#   disk-headline         DISK+LightGlue, bm-moldGoldCape, exhaustive too
+#   disk-small            DISK+LightGlue, the five smaller scenes, exhaustive/retrieval/sara
+#
+# Environment: DATA (default ../shared/data relative to the repo), OUT (default /work/bench_learned),
+# WORKERS (default 2: learned extraction and matching in 2 processes with 1 torch thread each).
+# Long jobs: nohup scripts/learned_bench.sh aliked-headline > /work/bench_learned/aliked-headline.log 2>&1 &
+set -euo pipefail
+
+here="$(cd "$(dirname "$0")/.." && pwd)"
+DATA="${DATA:-$(cd "$here/../shared/data" && pwd)}"
+OUT="${OUT:-/work/bench_learned}"
+WORKERS="${WORKERS:-2}"
+SARA="${SARA:-sara}"
+command -v "$SARA" >/dev/null || SARA="$here/.venv/bin/sara"
+
+big="$DATA/bm-moldGoldCape"
+small=("$DATA/strecha-fountain-P11" "$DATA/middlebury-templeSparseRing" "$DATA/strecha-Herz-Jesus-P25"
+       "$DATA/strecha-castle-P30" "$DATA/middlebury-templeRing")
+
+bench() {  # bench PRESET OUTNAME METHODS CHUNK SCENE...
+    # CHUNK: pairs per matcher job (match.chunk_size). The default 128 leaves one of the two workers
+    # idle on a method with fewer than 129 pairs (SARA on the small scenes), so the small scenes use 8.
+    local preset="$1" name="$2" methods="$3" chunk="$4"
+    shift 4
+    local cmd=("$SARA" bench "$@" --preset "$preset" --methods "$methods" -s "execute.workers=$WORKERS")
+    [ "$chunk" = default ] || cmd+=(-s "match.chunk_size=$chunk")
+    cmd+=(--out "$OUT/$name" --no-plot -q)
+    echo "[$(date -Is)] ${cmd[*]}"
+    "${cmd[@]}"
+    echo "[$(date -Is)] done: $OUT/$name/results.md"
+}
+
+case "${1:-}" in
+    aliked-headline-fast) bench aliked-lightglue aliked-lightglue-big sara,retrieval default "$big" ;;
+    aliked-headline)      bench aliked-lightglue aliked-lightglue-big exhaustive,retrieval,sara default "$big" ;;
+    xfeat-small)          bench xfeat-lighterglue xfeat-lighterglue-small exhaustive,retrieval,sara 8 "${small[@]}" ;;
+    xfeat-big-fast)       bench xfeat-lighterglue xfeat-lighterglue-big sara,retrieval default "$big" ;;
+    xfeat-big)            bench xfeat-lighterglue xfeat-lighterglue-big exhaustive,retrieval,sara default "$big" ;;
+    aliked-small)         bench aliked-lightglue aliked-lightglue-small exhaustive,retrieval,sara 8 "${small[@]}" ;;
+    disk-headline-fast)   bench disk-lightglue disk-lightglue-big sara,retrieval default "$big" ;;
+    disk-headline)        bench disk-lightglue disk-lightglue-big exhaustive,retrieval,sara default "$big" ;;
+    disk-small)           bench disk-lightglue disk-lightglue-small exhaustive,retrieval,sara 8 "${small[@]}" ;;
+    *) sed -n '2,19p' "$0"; exit 2 ;;
+esac
+
