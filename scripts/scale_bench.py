@@ -388,6 +388,7 @@ def measure(args: argparse.Namespace, n: int) -> dict[str, Any] | None:
     run["loadavg_before"], run["loadavg_after"] = load_before, os.getloadavg()
     record: dict[str, Any] = {
         "num_images": n, "settings": key, "machine": machine(), "git": git_commit(args.sara_src),
+        "label": args.label,
         "world": {k: v for k, v in info.items() if k != "config"}, "world_config": info.get("config"),
         "world_wall_s": world_s, "run": {k: v for k, v in run.items() if k != "child"},
     }
@@ -525,7 +526,8 @@ def render_markdown(records: list[dict[str, Any]], plot_name: str | None) -> str
     m = records[0]["machine"] if records else {}
     if m:
         lines += ["", (f"Machine: {m['cpus']} CPUs, {m['memory_gib']} GiB, Python {m['python']}, "
-                       f"numpy {m['numpy']}; sara at {records[0].get('git', '?')}.")]
+                       f"numpy {m['numpy']}; sara at {records[0].get('git', '?')}"
+                       + (f", {records[0]['label']}" if records[0].get("label") else "") + ".")]
     if plot_name:
         lines += ["", f"![time and memory against N]({plot_name})"]
     return "\n".join(lines) + "\n"
@@ -646,6 +648,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--world", action="append", default=[], metavar="KEY=VALUE", help="world option, e.g. step_m=1.5")
     p.add_argument("--profile", choices=["cprofile", "tracemalloc"], help="profile the runs (kept out of the table)")
     p.add_argument("--sara-src", type=Path, help="import sara from this folder in the subprocess")
+    p.add_argument("--label", default="", help="what code is measured (e.g. a commit), kept with the results")
     p.add_argument("--db-features", action="store_true", help="write keypoints and descriptors into the database too")
     p.add_argument("--delete-worlds", action="store_true", help="delete each world after its run (saves disk)")
     p.add_argument("--report-only", action="store_true", help="only rebuild the table, JSON, Markdown and plot")
