@@ -2,6 +2,9 @@
 
 from pathlib import Path
 
+import h5py
+import numpy as np
+
 from conftest import scene_dir
 
 from sara.config import make_config
@@ -28,6 +31,11 @@ def test_synthetic_end_to_end(tmp_path: Path, synthetic_scene):
     again = run(conf, images, out, gt_dir=gt, progress=False)
     assert again.stages["match"]["num_matched_now"] == 45  # recorded from the run that did it
     assert again.metrics["auc"] == m["auc"]
+    # SIFT descriptors in the features file as hloc stores them: unit-length float16
+    with h5py.File(out / "features-sift.h5", "r") as h5:
+        desc = h5[sorted(h5)[0]]["descriptors"][()]
+    assert desc.dtype == np.float16 and desc.shape[0] == 128
+    np.testing.assert_allclose(np.linalg.norm(desc.astype(np.float32), axis=0), 1.0, atol=2e-3)
 
 
 def test_real_scene_fountain_exhaustive(tmp_path: Path):

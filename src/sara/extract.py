@@ -13,6 +13,7 @@ from tqdm import tqdm
 
 from . import colmap
 from .config import ExtractConfig
+from .descriptors import l2_normalize
 from .execute import Executor, SerialExecutor, single_threaded_torch_in_worker
 from .features import Keypoints, LocalFeatures, features_file_name, make_backend
 from .io import atomic_path, fingerprint, records
@@ -234,10 +235,16 @@ def _export_h5(db_path: Path, h5_path: Path, images: ImageSet, progress: bool) -
                            unit="img", disable=not progress):
                 kp, scale, desc = colmap.read_sift(db, im.image_id)
                 write_features(h5, im.name, Features(
-                    keypoints=colmap.colmap_to_hloc_keypoints(kp), descriptors=desc,
+                    keypoints=colmap.colmap_to_hloc_keypoints(kp), descriptors=hloc_descriptors(desc),
                     scores=scale, image_size=images.sizes[im.name]))
                 num_kp[im.name] = len(kp)
     return num_kp
+
+
+def hloc_descriptors(desc: np.ndarray) -> np.ndarray:
+    """COLMAP's uint8 RootSIFT (norm about 512) -> unit-length float16, as hloc's extractors store
+    descriptors, so that hloc's ratio and distance tests work on sara's files."""
+    return l2_normalize(desc, axis=1).astype(np.float16)
 
 
 def _summary(num_kp: dict[str, int]) -> dict:

@@ -1,7 +1,8 @@
 """COLMAP's SIFT (RootSIFT, COLMAP's defaults): the default backend, extracted straight into the
 COLMAP database by COLMAP itself, then copied into `features-sift.h5`.
 
-Descriptors stay as COLMAP stores them: (N, 128) uint8, RootSIFT scaled by 512.
+In the database descriptors stay as COLMAP stores them, (N, 128) uint8 RootSIFT scaled by 512; in
+`features-sift.h5` they are unit-length float16, as hloc stores them.
 """
 
 from __future__ import annotations

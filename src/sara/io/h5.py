@@ -2,7 +2,8 @@
 
 One group per image name (sub-folders become nested groups), holding
 `keypoints` (N, 2) float32 pixels in hloc's convention (centre of the top-left pixel at (0, 0)),
-`descriptors` (D, N) (uint8 RootSIFT scaled as COLMAP stores it, or float for learned features),
+`descriptors` (D, N) unit-length float (float16 for SIFT, as hloc stores it; the COLMAP database keeps
+COLMAP's uint8), any D,
 `scores` (N,) float32 (for SIFT: the keypoint scale in pixels; larger first is a good ranking),
 `image_size` (2,) int32 (width, height).
 """

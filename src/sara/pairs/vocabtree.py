@@ -41,13 +41,16 @@ def sample_sift(features_path: Path, names: Sequence[str], max_total: int, *, se
                 progress: bool = True) -> np.ndarray:
     """A seeded sample of about `max_total` SIFT descriptors, the same share from every image.
 
-    Returns (M, 128) uint8 descriptors as stored in `features.h5` (COLMAP's scaled RootSIFT).
+    Returns (M, 128) uint8 descriptors in COLMAP's scale (RootSIFT times 512), as COLMAP indexes
+    them: unit-length float descriptors (sara's and hloc's files) are scaled back.
     """
     rng = np.random.default_rng(seed)
     per_image = max(1, math.ceil(max_total / max(len(names), 1)))
     parts = []
     for name in tqdm(names, desc="sample SIFT for the vocabulary tree", unit="img", disable=not progress):
         desc = np.asarray(read_features(features_path, name).descriptors)
+        if desc.dtype != np.uint8:
+            desc = np.clip(np.round(desc.astype(np.float32) * 512.0), 0, 255)
         if len(desc) > per_image:
             desc = desc[np.sort(rng.choice(len(desc), per_image, replace=False))]
         parts.append(desc)
