@@ -282,6 +282,15 @@ def read_scores(path: Path) -> tuple[list[tuple[str, str]], list[bool]] | None:
 
 def components(names: list[str], pairs: list[tuple[str, str]]) -> list[int]:
     """Sizes of the connected components of the graph of `pairs` on `names`, largest first."""
+    labels = component_labels(names, pairs)
+    sizes: dict[int, int] = {}
+    for r in labels.values():
+        sizes[r] = sizes.get(r, 0) + 1
+    return sorted(sizes.values(), reverse=True)
+
+
+def component_labels(names: list[str], pairs: list[tuple[str, str]]) -> dict[str, int]:
+    """name -> a label shared by the images of one connected component (union-find)."""
     parent = list(range(len(names)))
     index = {n: i for i, n in enumerate(names)}
 
@@ -295,11 +304,39 @@ def components(names: list[str], pairs: list[tuple[str, str]]) -> list[int]:
         ra, rb = find(index[a]), find(index[b])
         if ra != rb:
             parent[ra] = rb
-    sizes: dict[int, int] = {}
-    for i in range(len(names)):
-        r = find(i)
-        sizes[r] = sizes.get(r, 0) + 1
-    return sorted(sizes.values(), reverse=True)
+    return {n: find(i) for i, n in enumerate(names)}
+
+
+def outside_main(names: list[str], selected: list[tuple[str, str]], candidates: list[tuple[str, str]],
+                 true_cand: Any, accepted: Any) -> dict[str, Any]:
+    """Why the images outside the largest selected component are there.
+
+    retrieval_miss: none of its candidates truly overlaps it; scorer_rejected: some do, but the
+    scorer rejected all of them; cut_off: it has accepted candidates, but none leads out of its
+    small component (its group's links to the rest were all missed or rejected).
+    """
+    labels = component_labels(names, selected)
+    counts: dict[int, int] = {}
+    for r in labels.values():
+        counts[r] = counts.get(r, 0) + 1
+    main = max(counts, key=lambda r: counts[r]) if counts else -1
+    true_any: dict[str, bool] = {}
+    acc_any: dict[str, bool] = {}
+    for (a, b), t, ok in zip(candidates, true_cand, accepted):
+        for n in (a, b):
+            true_any[n] = true_any.get(n, False) or bool(t)
+            acc_any[n] = acc_any.get(n, False) or bool(ok)
+    out = {"retrieval_miss": [], "scorer_rejected": [], "cut_off": []}
+    for n in names:
+        if labels[n] == main:
+            continue
+        if not true_any.get(n, False):
+            out["retrieval_miss"].append(n)
+        elif not acc_any.get(n, False):
+            out["scorer_rejected"].append(n)
+        else:
+            out["cut_off"].append(n)
+    return {"counts": {k: len(v) for k, v in out.items()}, "examples": {k: v[:10] for k, v in out.items()}}
 
 
 def evaluate(world_dir: Path, run_dir: Path, min_common: int) -> dict[str, Any]:
@@ -333,6 +370,7 @@ def evaluate(world_dir: Path, run_dir: Path, min_common: int) -> dict[str, Any]:
             "candidates_true_fraction": float(cand.mean()) if len(cand) else 0.0,
             "accepted_precision": float(cand[acc].mean()) if acc.any() else 0.0,
             "accepted_recall": float(acc[cand].mean()) if cand.any() else 0.0,
+            "outside_main_component": outside_main(names, selected, pairs, cand, acc),
         })
     return out
 
@@ -494,6 +532,15 @@ def table_rows(records: list[dict[str, Any]]) -> tuple[list[str], list[list[str]
     return header, rows
 
 
+def _outside_text(r: dict[str, Any]) -> str:
+    counts = r.get("outside_main_component", {}).get("counts", {})
+    if not any(counts.values()):
+        return ""
+    return (f"; outside the largest component: {counts['retrieval_miss']} images without a truly overlapping "
+            f"candidate, {counts['scorer_rejected']} whose true candidates were all rejected, "
+            f"{counts['cut_off']} in groups cut off from the rest")
+
+
 def render_markdown(records: list[dict[str, Any]], plot_name: str | None) -> str:
     header, rows = table_rows(records)
     lines = ["# Scale bench", "", "| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
@@ -514,7 +561,8 @@ def render_markdown(records: list[dict[str, Any]], plot_name: str | None) -> str
                 f"({100 * r['candidates_true_fraction']:.0f}% truly overlapping), "
                 f"{r['num_accepted']} accepted (precision {100 * r['accepted_precision']:.1f}%, "
                 f"recall {100 * r['accepted_recall']:.1f}%); selected pairs share at least "
-                f"{r['selected_common_min']} 3D points (median {r['selected_common_median']:.0f})")
+                f"{r['selected_common_min']} 3D points (median {r['selected_common_median']:.0f})"
+                + _outside_text(r))
     lines += ["", "Worlds:", ""]
     for r in records:
         w = r["world"]
@@ -652,6 +700,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--db-features", action="store_true", help="write keypoints and descriptors into the database too")
     p.add_argument("--delete-worlds", action="store_true", help="delete each world after its run (saves disk)")
     p.add_argument("--report-only", action="store_true", help="only rebuild the table, JSON, Markdown and plot")
+    p.add_argument("--reevaluate", action="store_true",
+                   help="with --report-only: judge the stored runs against the truth again (after a change here)")
     p.add_argument("--quiet", action="store_true", help="no progress bars while synthesising")
     p.add_argument("--child", nargs=4, type=Path, help=argparse.SUPPRESS)
     args = p.parse_args(argv)
@@ -662,6 +712,14 @@ def main(argv: list[str] | None = None) -> int:
     if args.out is None:
         p.error("--out is required")
     args.out.mkdir(parents=True, exist_ok=True)
+    if args.reevaluate:
+        for path in sorted((args.out / RESULTS_DIR).glob("*.json")):
+            record = json.loads(path.read_text())
+            tag = path.stem
+            run_dir, world_dir = args.out / f"run-{tag}", args.out / f"world-{record['num_images']}"
+            if "selection_s" in record and (run_dir / "pairs.txt").exists() and world_dir.exists():
+                record.update(evaluate(world_dir, run_dir, args.min_common))
+                path.write_text(json.dumps(record, indent=1, default=_json_default) + "\n")
     if not args.report_only:
         sizes = [int(s) for s in args.sizes.split(",") if s.strip()]
         for n in sizes:
