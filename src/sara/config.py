@@ -23,6 +23,9 @@ class ImagesConfig:
     # loaders do; "apply" writes upright copies to <out>/images_upright and reconstructs from those
     exif_orientation: str = "ignore"
 
+    def __post_init__(self) -> None:
+        validate(self)
+
 
 @dataclass(frozen=True, kw_only=True)
 class ExtractConfig:
@@ -40,6 +43,9 @@ class ExtractConfig:
     default_focal_length_factor: float = 1.2  # COLMAP's prior: focal = factor * max(width, height)
     num_threads: int = -1
 
+    def __post_init__(self) -> None:
+        validate(self)
+
 
 @dataclass(frozen=True, kw_only=True)
 class RetrievalConfig:
@@ -52,6 +58,9 @@ class RetrievalConfig:
     weights: str = ""  # local weights file for learned descriptors (dinov2, aliked-gem)
     device: str = "auto"  # learned descriptors: auto | cpu | cuda
     image_size: int = 448  # learned descriptors: longer image side in pixels
+
+    def __post_init__(self) -> None:
+        validate(self)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -68,6 +77,9 @@ class ScoreConfig:
     min_overlap: float = 0.005  # tau_O
     min_parallax_deg: float = 0.5  # tau_P
     min_inliers: int = 15  # RANSAC on unrelated images finds 8-12 of 50 by chance
+
+    def __post_init__(self) -> None:
+        validate(self)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -88,6 +100,9 @@ class PairsConfig:
     repair_rounds: int = 1
     repair_pairs_per_view: int = 3
 
+    def __post_init__(self) -> None:
+        validate(self)
+
 
 @dataclass(frozen=True, kw_only=True)
 class MatchConfig:
@@ -103,6 +118,9 @@ class MatchConfig:
     num_threads: int = -1
     chunk_size: int = 128  # pairs per matcher call: progress granularity and resume points
 
+    def __post_init__(self) -> None:
+        validate(self)
+
 
 @dataclass(frozen=True, kw_only=True)
 class MapConfig:
@@ -113,6 +131,9 @@ class MapConfig:
     abs_pose_min_num_inliers: int = 15
     abs_pose_min_inlier_ratio: float = 0.1
     num_threads: int = -1
+
+    def __post_init__(self) -> None:
+        validate(self)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -169,6 +190,7 @@ class GraphConfig:
     """Most pairs added per weak view (pairs)."""
 
     def __post_init__(self) -> None:
+        validate(self)
         for name in ("loop_budget_ratio", "anchor_budget_ratio", "weak_budget_ratio"):
             if not getattr(self, name) >= 0:
                 raise ValueError(f"GraphConfig.{name} must be >= 0, got {getattr(self, name)}")
@@ -205,6 +227,10 @@ class ExecuteConfig:
     executor: str = "auto"  # auto (serial for 1 worker, else processes) | serial | processes | ray
     workers: int = 0  # parallel workers; 0: one per CPU core
     ray_address: str = ""  # with executor=ray: a cluster address or "auto"; empty starts a local one
+    shard_size: int = 512  # pairs per shard of parallel scoring (fewer than two shards: scored in-process)
+
+    def __post_init__(self) -> None:
+        validate(self)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -220,8 +246,208 @@ class PipelineConfig:
     execute: ExecuteConfig = field(default_factory=ExecuteConfig)
     seed: int = 0
 
+    def __post_init__(self) -> None:
+        validate(self)
+
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
+
+
+# ---------------------------------------------------------------------------------------------
+# Valid values: checked when a config is made (so a bad `-s key=value` or flag fails at once,
+# naming the option and its valid range)
+# ---------------------------------------------------------------------------------------------
+
+
+class ConfigError(ValueError):
+    """An option has a value outside its valid range; `option` is its dotted name."""
+
+    def __init__(self, option: str, message: str) -> None:
+        super().__init__(message)
+        self.option = option
+
+
+#: COLMAP's camera models (pycolmap.CameraModelId, less INVALID)
+CAMERA_MODELS = (
+    "SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "SIMPLE_RADIAL_FISHEYE", "RADIAL", "RADIAL_FISHEYE",
+    "OPENCV", "OPENCV_FISHEYE", "FULL_OPENCV", "FOV", "THIN_PRISM_FISHEYE", "RAD_TAN_THIN_PRISM_FISHEYE",
+    "SIMPLE_DIVISION", "DIVISION", "SIMPLE_FISHEYE", "FISHEYE", "EUCM", "EQUIRECTANGULAR",
+)
+MAX_SEED = 2**31 - 1
+
+
+def _is_int(value: Any) -> bool:
+    return isinstance(value, (int, np.integer)) and not isinstance(value, (bool, np.bool_))
+
+
+def _is_real(value: Any) -> bool:
+    return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, (bool, np.bool_))
+
+
+def _ints(low: int, high: int | None = None) -> tuple[Any, str]:
+    text = f"an integer >= {low}" if high is None else f"an integer from {low} to {high}"
+    return (lambda v: _is_int(v) and v >= low and (high is None or v <= high)), text
+
+
+def _reals(low: float, high: float | None = None, *, low_open: bool = False, high_open: bool = False) -> tuple[Any, str]:
+    def ok(v: Any) -> bool:
+        if not _is_real(v) or not math.isfinite(v):
+            return False
+        above = v > low if low_open else v >= low
+        below = high is None or (v < high if high_open else v <= high)
+        return above and below
+
+    if high is None:
+        text = f"a finite number {'>' if low_open else '>='} {low:g}"
+    else:
+        text = f"a number in {'(' if low_open else '['}{low:g}, {high:g}{')' if high_open else ']'}"
+    return ok, text
+
+
+def _choice(*options: str) -> tuple[Any, str]:
+    return (lambda v: v in options), "one of " + ", ".join(options)
+
+
+def _name() -> tuple[Any, str]:
+    return (lambda v: isinstance(v, str) and v.strip() != "" and v == v.strip()), "a name (not empty)"
+
+
+def _text() -> tuple[Any, str]:
+    return (lambda v: isinstance(v, str)), "a string"
+
+
+def _flag() -> tuple[Any, str]:
+    return (lambda v: isinstance(v, (bool, np.bool_))), "true or false"
+
+
+def _device() -> tuple[Any, str]:
+    import re
+
+    return (lambda v: isinstance(v, str) and re.fullmatch(r"auto|cpu|mps|cuda(:\d+)?", v) is not None,
+            "auto, cpu, cuda, cuda:N or mps")
+
+
+def _numbers_list() -> tuple[Any, str]:
+    def ok(v: Any) -> bool:
+        if not isinstance(v, str):
+            return False
+        if not v.strip():
+            return True
+        try:
+            return all(math.isfinite(float(x)) for x in v.split(","))
+        except ValueError:
+            return False
+
+    return ok, "empty or comma-separated numbers, e.g. 1200,1200,512,384"
+
+
+_THREADS = _ints(-1)  # COLMAP: -1 (or 0) uses every core
+
+#: section.field -> (check, description of the valid values); every field of every section has one
+RULES: dict[str, tuple[Any, str]] = {
+    "images.recursive": _flag(),
+    "images.exif_orientation": _choice("ignore", "apply"),
+    "extract.backend": _name(),
+    "extract.max_num_features": _ints(1),
+    "extract.max_image_size": _ints(32),
+    "extract.device": _device(),
+    "extract.weights": _text(),
+    "extract.camera_model": _choice(*CAMERA_MODELS),
+    "extract.camera_mode": _choice("auto", "single", "per_image", "per_folder"),
+    "extract.camera_params": _numbers_list(),
+    "extract.default_focal_length_factor": _reals(0, 100, low_open=True),
+    "extract.num_threads": _THREADS,
+    "retrieval.descriptor": _name(),
+    "retrieval.num_neighbors": _ints(1),
+    "retrieval.codebook_size": _ints(1),
+    "retrieval.features_per_image": _ints(1),
+    "retrieval.weights": _text(),
+    "retrieval.device": _device(),
+    "retrieval.image_size": _ints(32),
+    "score.num_keypoints": _ints(5),
+    "score.num_matches": _ints(5),
+    "score.ransac_iterations": _ints(1),
+    "score.ransac_max_error_px": _reals(0, low_open=True),
+    "score.alpha": _reals(0),
+    "score.beta": _reals(0),
+    "score.parallax_saturation_deg": _reals(0, 180, low_open=True),
+    "score.min_overlap": _reals(0, 1),
+    "score.min_parallax_deg": _reals(0, 180, high_open=True),
+    "score.min_inliers": _ints(0),
+    "pairs.method": _name(),
+    "pairs.sequential_overlap": _ints(1),
+    "pairs.sequential_quadratic": _flag(),
+    "pairs.sequential_loop_detection": _flag(),
+    "pairs.sequential_loop_period": _ints(1),
+    "pairs.sequential_loop_neighbors": _ints(1),
+    "pairs.vocab_tree_path": _text(),
+    "pairs.vocab_num_images": _ints(1),
+    "pairs.vocab_num_words": _ints(2),
+    "pairs.repair_rounds": _ints(0),
+    "pairs.repair_pairs_per_view": _ints(1),
+    "match.backend": _name(),
+    "match.device": _device(),
+    "match.weights": _text(),
+    "match.max_ratio": _reals(0, 1, low_open=True),
+    "match.max_distance": _reals(0, low_open=True),
+    "match.cross_check": _flag(),
+    "match.min_num_inliers": _ints(1),
+    "match.num_threads": _THREADS,
+    "match.chunk_size": _ints(1),
+    "map.mapper": _choice("incremental", "global"),
+    "map.min_model_size": _ints(2),
+    "map.abs_pose_min_num_inliers": _ints(3),
+    "map.abs_pose_min_inlier_ratio": _reals(0, 1, low_open=True),
+    "map.num_threads": _THREADS,
+    "graph.use_loops": _flag(),
+    "graph.use_anchors": _flag(),
+    "graph.use_weak": _flag(),
+    "graph.loop_budget_ratio": _reals(0),
+    "graph.anchor_budget_ratio": _reals(0),
+    "graph.weak_budget_ratio": _reals(0),
+    "graph.loop_short_frac": _reals(0, 1),
+    "graph.loop_long_frac": _reals(0, 1),
+    "graph.loop_min_short_len": _ints(2),
+    "graph.anchor_max_per_view": _ints(1),
+    "graph.weak_degree": _ints(0),
+    "graph.weak_quantile": _reals(0, 1),
+    "graph.weak_per_view": _ints(1),
+    "execute.executor": _choice("auto", "serial", "processes", "ray"),
+    "execute.workers": _ints(0),
+    "execute.ray_address": _text(),
+    "execute.shard_size": _ints(1),
+    "seed": _ints(0, MAX_SEED),
+}
+
+#: the section name of each config class in `PipelineConfig`
+SECTIONS = {
+    "ImagesConfig": "images", "ExtractConfig": "extract", "RetrievalConfig": "retrieval", "ScoreConfig": "score",
+    "PairsConfig": "pairs", "MatchConfig": "match", "MapConfig": "map", "GraphConfig": "graph",
+    "ExecuteConfig": "execute", "PipelineConfig": "",
+}
+
+
+def validate(conf: Any) -> None:
+    """Raise ConfigError for the first field of a config section outside its valid range."""
+    section = SECTIONS.get(type(conf).__name__, type(conf).__name__)
+    for f in dataclasses.fields(conf):
+        value = getattr(conf, f.name)
+        if dataclasses.is_dataclass(value):
+            continue
+        option = f"{section}.{f.name}" if section else f.name
+        rule = RULES.get(option)
+        if rule is not None and not rule[0](value):
+            raise ConfigError(option, f"{option} must be {rule[1]}, got {value!r}")
+    _cross_checks(conf, section)
+
+
+def _cross_checks(conf: Any, section: str) -> None:
+    if section == "score" and conf.min_inliers > conf.num_matches:
+        raise ConfigError("score.min_inliers", f"score.min_inliers ({conf.min_inliers}) must be at most "
+                          f"score.num_matches ({conf.num_matches}): every candidate pair would be rejected")
+    if section == "score" and conf.num_matches > conf.num_keypoints:
+        raise ConfigError("score.num_matches", f"score.num_matches ({conf.num_matches}) must be at most "
+                          f"score.num_keypoints ({conf.num_keypoints})")
 
 
 PRESETS: dict[str, dict[str, Any]] = {

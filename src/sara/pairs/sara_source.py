@@ -41,7 +41,7 @@ def select(ctx: PairContext) -> PairResult:
     tic = time.perf_counter()
     candidates: list[Pair] = [(names[i], names[j]) for i, j in edges]
     scores = scoring.score_pairs(candidates, ctx.features_path, ctx.db_path, conf.score, executor=ctx.executor,
-                                 work_dir=ctx.out_dir / ".sara", progress=ctx.progress, seed=conf.seed)
+                                 shard_size=conf.execute.shard_size, work_dir=ctx.out_dir / ".sara", progress=ctx.progress, seed=conf.seed)
     timings["scoring"] = time.perf_counter() - tic
 
     tic = time.perf_counter()

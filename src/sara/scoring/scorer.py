@@ -263,6 +263,7 @@ def score_pairs(
     conf: ScoreConfig,
     *,
     executor: Executor | None = None,
+    shard_size: int = SHARD_PAIRS,
     work_dir: Path | None = None,
     progress: bool = True,
     seed: int = 0,
@@ -279,6 +280,7 @@ def score_pairs(
         db_path: the COLMAP database with the images' cameras (EXIF focal or COLMAP's prior).
         conf: scorer settings.
         executor: where the shards run (`sara.execute`); None: serially, here.
+        shard_size: pairs per shard; fewer pairs than two shards are scored in this process.
         work_dir: where the view store goes (its own sub-folder, removed afterwards).
         progress: show progress bars.
         seed: RANSAC seed, the same for every pair: a pair's score does not depend on the others.
@@ -293,15 +295,17 @@ def score_pairs(
     row = {n: i for i, n in enumerate(names)}
     index0 = np.array([row[a] for a, _ in pairs], dtype=np.int64)
     index1 = np.array([row[b] for _, b in pairs], dtype=np.int64)
-    if executor is None or len(pairs) < 2 * SHARD_PAIRS:
+    if shard_size < 1:
+        raise ValueError(f"execute.shard_size must be at least 1, got {shard_size}")
+    if executor is None or len(pairs) < 2 * shard_size:
         executor = SerialExecutor()
     if work_dir is not None:
         Path(work_dir).mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(prefix="score-views-", dir=work_dir) as tmp:
         store = ViewStore.write(Path(tmp), names, features_path, db_path, conf.num_keypoints, progress=progress)
         start = time.perf_counter()
-        shards = [_Shard(str(store.folder), index0[k:k + SHARD_PAIRS], index1[k:k + SHARD_PAIRS], conf, seed)
-                  for k in range(0, len(pairs), SHARD_PAIRS)]
+        shards = [_Shard(str(store.folder), index0[k:k + shard_size], index1[k:k + shard_size], conf, seed)
+                  for k in range(0, len(pairs), shard_size)]
         results: list[PairScore] = []
         with tqdm(total=len(pairs), desc=f"score pairs ({executor.workers} worker(s))", unit="pair",
                   disable=not progress) as bar:

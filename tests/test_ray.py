@@ -1,0 +1,86 @@
+"""The Ray executor on a real two-node Ray cluster on this machine (`ray start --head` plus a second
+node joined to it, both stopped at the end): the same pairs as a serial run, and a worker that dies
+mid-run is replaced (its task runs again) and the run completes."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import socket
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+pytest.importorskip("ray")
+
+from sara.cli import main  # noqa: E402
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _ray(*args: str, env: dict[str, str]) -> None:
+    ray_cli = Path(sys.executable).with_name("ray")
+    subprocess.run([str(ray_cli), *args], check=True, env=env, capture_output=True, timeout=180)
+
+
+@pytest.fixture(scope="module")
+def ray_cluster(tmp_path_factory):
+    """A head node and a worker node on localhost, one CPU each; yields the head's address."""
+    temp = tmp_path_factory.mktemp("ray")
+    env = {**os.environ, "RAY_USAGE_STATS_ENABLED": "0"}
+    port = _free_port()
+    address = f"127.0.0.1:{port}"
+    common = ["--num-cpus=1", "--disable-usage-stats"]
+    try:
+        _ray("start", "--head", f"--port={port}", "--node-ip-address=127.0.0.1", "--include-dashboard=false",
+             f"--temp-dir={temp}", *common, env=env)
+        _ray("start", f"--address={address}", "--node-ip-address=127.0.0.1", *common, env=env)
+    except (subprocess.CalledProcessError, subprocess.TimeoutExpired) as exc:
+        _ray("stop", "--force", env=env)
+        pytest.fail(f"could not start a local Ray cluster: {exc}")
+    yield address
+    _ray("stop", "--force", env=env)
+
+
+def test_ray_cluster_gives_the_serial_pairs(ray_cluster, synthetic_scene, tmp_path: Path, monkeypatch) -> None:
+    images, _ = synthetic_scene
+    serial, clustered = tmp_path / "serial", tmp_path / "ray"
+    shards = ["-s", "execute.shard_size=8"]  # 45 candidates in 6 shards: the scorer really runs on Ray
+    assert main(["run", str(images), str(serial), "-q", "--workers", "1", *shards]) == 0
+    monkeypatch.setenv("RAY_ADDRESS", ray_cluster)
+    assert main(["run", str(images), str(clustered), "-q", "--executor", "ray", "--ray-address", "auto",
+                 *shards]) == 0
+    assert (clustered / "pairs.txt").read_bytes() == (serial / "pairs.txt").read_bytes()
+    assert (clustered / "scores.csv").read_bytes() == (serial / "scores.csv").read_bytes()
+    assert (clustered / "sparse" / "0").is_dir()
+
+
+def _dies_once(item: tuple[str, int]) -> int:
+    """Kills its own worker process the first time it sees item 2 (a marker file remembers)."""
+    marker, value = item
+    if value == 2 and not Path(marker).exists():
+        Path(marker).touch()
+        os._exit(1)
+    return value * value
+
+
+def test_a_dead_worker_is_replaced_and_the_work_completes(ray_cluster, tmp_path: Path) -> None:
+    import ray.cloudpickle
+
+    from sara.execute import make_executor
+
+    ray.cloudpickle.register_pickle_by_value(sys.modules[__name__])  # workers cannot import this test file
+    executor = make_executor("ray", 0, ray_cluster)
+    try:
+        marker = str(tmp_path / "died")
+        assert list(executor.map(_dies_once, [(marker, v) for v in range(6)])) == [0, 1, 4, 9, 16, 25]
+        assert Path(marker).exists()  # a worker really died on the way
+    finally:
+        executor.close()
+    shutil.rmtree(tmp_path, ignore_errors=True)
