@@ -17,7 +17,9 @@
 #   disk-small            DISK+LightGlue, the five smaller scenes, exhaustive/retrieval/sara
 #
 # Environment: DATA (default ../shared/data relative to the repo), OUT (default /work/bench_learned),
-# WORKERS (default 2: learned extraction and matching in 2 processes with 1 torch thread each).
+# WORKERS (default 2: learned extraction and matching in 2 processes with 1 torch thread each),
+# SARA_COMMIT (optional: run the code of this commit, copied once to $OUT/src-<commit>, instead of the
+# working tree, so that edits made while a job runs for hours cannot change it halfway).
 # Long jobs: nohup scripts/learned_bench.sh aliked-headline > /work/bench_learned/aliked-headline.log 2>&1 &
 set -euo pipefail
 
@@ -25,8 +27,15 @@ here="$(cd "$(dirname "$0")/.." && pwd)"
 DATA="${DATA:-$(cd "$here/../shared/data" && pwd)}"
 OUT="${OUT:-/work/bench_learned}"
 WORKERS="${WORKERS:-2}"
-SARA="${SARA:-sara}"
-command -v "$SARA" >/dev/null || SARA="$here/.venv/bin/sara"
+PYTHON="${PYTHON:-$here/.venv/bin/python}"
+if [ -n "${SARA_COMMIT:-}" ]; then
+    src="$OUT/src-$SARA_COMMIT"
+    if [ ! -d "$src/src/sara" ]; then
+        mkdir -p "$src" && git -C "$here" archive "$SARA_COMMIT" src | tar -x -C "$src"
+    fi
+    export PYTHONPATH="$src/src${PYTHONPATH:+:$PYTHONPATH}"
+fi
+SARA=("$PYTHON" -m sara)
 
 big="$DATA/bm-moldGoldCape"
 small=("$DATA/strecha-fountain-P11" "$DATA/middlebury-templeSparseRing" "$DATA/strecha-Herz-Jesus-P25"
@@ -37,10 +46,10 @@ bench() {  # bench PRESET OUTNAME METHODS CHUNK SCENE...
     # idle on a method with fewer than 129 pairs (SARA on the small scenes), so the small scenes use 8.
     local preset="$1" name="$2" methods="$3" chunk="$4"
     shift 4
-    local cmd=("$SARA" bench "$@" --preset "$preset" --methods "$methods" -s "execute.workers=$WORKERS")
+    local cmd=("${SARA[@]}" bench "$@" --preset "$preset" --methods "$methods" -s "execute.workers=$WORKERS")
     [ "$chunk" = default ] || cmd+=(-s "match.chunk_size=$chunk")
     cmd+=(--out "$OUT/$name" --no-plot -q)
-    echo "[$(date -Is)] ${cmd[*]}"
+    echo "[$(date -Is)] ${PYTHONPATH:+PYTHONPATH=$PYTHONPATH }${cmd[*]}"
     "${cmd[@]}"
     echo "[$(date -Is)] done: $OUT/$name/results.md"
 }
