@@ -1,18 +1,75 @@
-"""The `sara` command line. Only this module configures logging and prints."""
+"""The `sara` command line. Only this module configures logging and prints.
+
+Every expected failure ends in exactly one line on stderr, `sara: error: <what happened and what
+to do>`, and one of these exit codes (README, "Bad input"):
+
+    0    success
+    1    internal error (a bug; `-v` shows the traceback)
+    2    bad usage or input: an option out of range, a missing or unusable image folder, pairs
+         file or ground truth, an output path that is a file
+    3    the output folder cannot be used as it is: made from other images or settings, damaged
+         files, an earlier stage unfinished, in use by another sara process
+    4    the file system: disk full, read-only, permission denied, input/output error
+    5    no result: the run produced no pairs, no verified pair or no model; the previous outputs
+         are kept
+    130  interrupted by SIGINT (Ctrl-C); 143 by SIGTERM; 129 by SIGHUP: run the same command
+         again to resume
+"""
 
 from __future__ import annotations
 
 import argparse
+import errno
 import logging
+import signal
 import sys
 from pathlib import Path
+from typing import Any, NoReturn
 
 from . import __version__
 
 logger = logging.getLogger("sara")
 
-EXIT_ERROR = 2
-EXIT_INTERRUPTED = 130
+EXIT_INTERNAL = 1
+EXIT_ERROR = EXIT_USAGE = 2
+EXIT_STATE = 3
+EXIT_FILESYSTEM = 4
+EXIT_NO_RESULT = 5
+EXIT_INTERRUPTED = 130  # 128 + SIGINT
+EXIT_TERMINATED = 143  # 128 + SIGTERM
+
+#: the flag that sets each option, to name it in an error about its value
+FLAGS = {"seed": "--seed", "execute.workers": "--workers", "execute.executor": "--executor",
+         "execute.ray_address": "--ray-address", "map.mapper": "--mapper", "extract.camera_mode": "--camera-mode",
+         "images.recursive": "--recursive", "pairs.method": "--pairs"}
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM or SIGHUP, handled like Ctrl-C (clean-up runs, one line, exit 128 + signal)."""
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(signum)
+        self.signum = signum
+
+
+class ArgumentParser(argparse.ArgumentParser):
+    """argparse, with usage errors as one `sara: error:` line and exit code 2."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(EXIT_USAGE, f"sara: error: {message} (see `{self.prog} --help`)\n")
+
+
+def _int_at_least(low: int):
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
+        if value < low:
+            raise argparse.ArgumentTypeError(f"must be an integer >= {low}, got {value}")
+        return value
+
+    return parse
 
 
 def _add_common(p: argparse.ArgumentParser) -> None:
@@ -36,7 +93,7 @@ def _add_output(p: argparse.ArgumentParser) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = ArgumentParser(
         prog="sara", description="Scene-aware pair selection for Structure-from-Motion, and the COLMAP pipeline around it.")
     parser.add_argument("--version", action="version", version=f"sara {__version__}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
@@ -104,7 +161,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("demo", help="offline self-test: synthesise a scene, reconstruct it, evaluate")
     p.add_argument("out", type=Path, nargs="?", default=Path("sara-demo"), help="output folder (default ./sara-demo)")
-    p.add_argument("--num-images", type=int, default=24)
+    p.add_argument("--num-images", type=_int_at_least(2), default=24)
     _add_output(p)
 
     from . import weights
@@ -200,7 +257,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> None:
     model = args.model
     if (model / "sparse").is_dir():
         model = model / "sparse"
-    metrics = evaluate(model, args.gt, args.json)
+    metrics = evaluate(model, args.gt, args.json, require_model=True)
     print(format_table(metrics))
 
 
@@ -245,30 +302,111 @@ def _cmd_bench(args: argparse.Namespace) -> None:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     _setup_logging(args)
-    from .extract import OutputMismatchError
-    from .io import OutputLockedError
+    from . import weights
 
     commands = {
         "run": _cmd_run, "extract": lambda a: _cmd_run(a, "extract"), "pairs": lambda a: _cmd_run(a, "pairs"),
         "match": _cmd_match, "map": _cmd_map, "evaluate": _cmd_evaluate, "demo": _cmd_demo,
-        "export": _cmd_export, "report": _cmd_report,
+        "bench": _cmd_bench, "weights": weights.cmd,
     }
-    commands["bench"] = _cmd_bench
-    from . import weights
-
-    commands["weights"] = weights.cmd
+    previous = _handle_termination() if args.command != "weights" else {}
     try:
         commands[args.command](args)
-    except KeyboardInterrupt:
-        print("sara: interrupted; run the same command again to resume where it stopped", file=sys.stderr)
-        return EXIT_INTERRUPTED
-    except (FileNotFoundError, NotADirectoryError, ValueError, OutputLockedError, OutputMismatchError,
-            weights.MissingExtraError) as exc:
+    except KeyboardInterrupt as exc:
+        signum = exc.signum if isinstance(exc, Terminated) else signal.SIGINT
+        name = signal.Signals(signum).name
+        print(f"sara: error: interrupted by {name}; run the same command again to resume where it stopped",
+              file=sys.stderr)
+        return 128 + signum
+    except Exception as exc:  # noqa: BLE001 - every failure ends in one line and a documented code
+        code, message = describe_error(exc, args)
         if args.verbose:
             logger.exception("failed")
-        print(f"sara: error: {exc}", file=sys.stderr)
-        return EXIT_ERROR
+        print(f"sara: error: {message}", file=sys.stderr)
+        return code
+    finally:
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
     return 0
+
+
+def _handle_termination() -> dict[int, Any]:
+    """SIGTERM and SIGHUP raise Terminated, like SIGINT raises KeyboardInterrupt: clean-up code
+    runs and the user gets one line. pycolmap installs a native handler that prints a stack dump on
+    SIGTERM; it is imported first so that ours replaces it. Returns the handlers to put back."""
+    from . import colmap  # noqa: F401 - pycolmap's native signal handlers, replaced below
+
+    def terminate(signum: int, frame: object) -> None:
+        signal.signal(signum, signal.SIG_IGN)  # a second signal does not break the clean-up
+        raise Terminated(signum)
+
+    previous = {}
+    for signum in (signal.SIGTERM, signal.SIGHUP):
+        previous[signum] = signal.signal(signum, terminate)
+    return previous
+
+
+def describe_error(exc: BaseException, args: argparse.Namespace | None = None) -> tuple[int, str]:
+    """The exit code and the one-line message of an error (the one place that maps them)."""
+    import sqlite3
+
+    from .config import ConfigError
+    from .io import NoResultError, OutputStateError
+    from .weights import MissingExtraError
+
+    text = " ".join(str(exc).split()) or type(exc).__name__
+    if isinstance(exc, ConfigError):
+        flag = FLAGS.get(exc.option)
+        given = getattr(args, _flag_dest(flag), None) if (args is not None and flag) else None
+        return EXIT_USAGE, (f"{flag}: {text}" if given not in (None, False) else text)
+    if isinstance(exc, NoResultError):
+        return EXIT_NO_RESULT, text
+    if isinstance(exc, OutputStateError):
+        return EXIT_STATE, text
+    if isinstance(exc, sqlite3.DatabaseError):
+        if "full" in text:
+            return EXIT_FILESYSTEM, f"disk full while writing the database ({text}); free some space and run again"
+        return EXIT_STATE, f"the database is damaged ({text}); run again with --overwrite to redo it"
+    if isinstance(exc, OSError):
+        return _describe_os_error(exc, text)
+    if isinstance(exc, (ValueError, MissingExtraError, LookupError)):
+        return EXIT_USAGE, text
+    if isinstance(exc, MemoryError):
+        return EXIT_FILESYSTEM, "out of memory; use fewer workers (--workers) or smaller images (-s extract.max_image_size=...)"
+    from .colmap import ColmapError
+
+    if isinstance(exc, ColmapError):
+        return EXIT_INTERNAL, text
+    return EXIT_INTERNAL, (f"internal error ({type(exc).__name__}: {text}); please report it with the command "
+                           "that caused it (-v shows the traceback)")
+
+
+def _flag_dest(flag: str) -> str:
+    return flag.lstrip("-").replace("-", "_") if flag != "--pairs" else "pairs"
+
+
+_FS_ERRNOS = {errno.ENOSPC: "no space left on the device", errno.EDQUOT: "disk quota exceeded",
+              errno.EROFS: "read-only file system", errno.EACCES: "permission denied",
+              errno.EPERM: "operation not permitted", errno.EIO: "input/output error",
+              errno.EMFILE: "too many open files", errno.ENFILE: "too many open files in the system",
+              errno.EFBIG: "file too large", errno.ENAMETOOLONG: "file name too long"}
+
+
+def _describe_os_error(exc: OSError, text: str) -> tuple[int, str]:
+    where = f": {exc.filename}" if exc.filename and str(exc.filename) not in (exc.strerror or "") else ""
+    detail = " ".join(str(exc.strerror).split()) if exc.strerror else text
+    if exc.errno in (errno.ENOSPC, errno.EDQUOT):
+        hint = "" if "run the same command again" in detail else "; free some space and run the same command again to resume"
+        return EXIT_FILESYSTEM, f"{detail}{where}{hint}"
+    if exc.errno in (errno.EROFS, errno.EACCES, errno.EPERM):
+        return EXIT_FILESYSTEM, f"{detail}{where}: cannot write there; choose an output folder you can write to"
+    if exc.errno in _FS_ERRNOS:
+        return EXIT_FILESYSTEM, f"{detail}{where}"
+    if isinstance(exc, (FileNotFoundError, NotADirectoryError, IsADirectoryError, FileExistsError)):
+        return EXIT_USAGE, f"{detail}{where}"
+    if exc.errno is None:  # HDF5 reports a damaged file this way
+        return EXIT_STATE, f"a file could not be read ({text}); run again with --overwrite to redo it"
+    return EXIT_FILESYSTEM, f"{detail}{where}"
 
 
 if __name__ == "__main__":

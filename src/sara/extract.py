@@ -16,9 +16,9 @@ from .config import ExtractConfig
 from .descriptors import l2_normalize
 from .execute import Executor, SerialExecutor, single_threaded_torch_in_worker
 from .features import Keypoints, LocalFeatures, features_file_name, make_backend
-from .io import atomic_path, fingerprint, records
-from .io.h5 import Features, has_features, write_features
-from .io.images import ImageSet
+from .io import DamagedOutputError, OutputStateError, atomic_path, ensure_free_space, fingerprint, records
+from .io.h5 import H5_ERRORS, Features, features_digest, has_features, write_features
+from .io.images import ImageSet, set_aside
 
 logger = logging.getLogger(__name__)
 
@@ -26,7 +26,7 @@ STAGE = "extract"
 DB_NAME = "database.db"
 
 
-class OutputMismatchError(ValueError):
+class OutputMismatchError(OutputStateError, ValueError):
     """An output folder holds results made from other inputs or settings."""
 
 
@@ -82,12 +82,16 @@ def run(conf: ExtractConfig, images: ImageSet, out_dir: Path, *, executor: Execu
     """Local features of every image; returns the path of `features-<backend>.h5`.
 
     The COLMAP database receives the images, their cameras and the keypoints. Resumes an
-    interrupted run: images already done are not extracted again.
+    interrupted run: images already done are not extracted again. Images that the extractor's own
+    decoder cannot read (COLMAP's reader for SIFT: a format it does not know under an image
+    extension, a file gone since the scan) are set aside, each with one warning, and listed in the
+    stage record (`usable` applies that list on every later run). A finished stage is trusted only
+    while the features file and the database still hold what it wrote.
     """
     out_dir = Path(out_dir)
     db_path, h5_path = out_dir / DB_NAME, out_dir / features_file_name(conf)
     key = _key(images, conf)
-    if not overwrite and records.is_done(out_dir, STAGE, key) and db_path.exists() and h5_path.exists():
+    if not overwrite and records.is_done(out_dir, STAGE, key) and _outputs_intact(out_dir, db_path, h5_path):
         logger.info("extract: features up to date, skipping")
         return h5_path
     backend = make_backend(conf)  # loads weights: a missing file fails here, before any work
@@ -98,33 +102,122 @@ def run(conf: ExtractConfig, images: ImageSet, out_dir: Path, *, executor: Execu
                 f"{out_dir} holds features made from other images or other extraction settings; "
                 "use another output folder or --overwrite to redo them"
             )
-        db_path.unlink(missing_ok=True)
+        colmap.remove_database(db_path)
         h5_path.unlink(missing_ok=True)
         _partial(h5_path).unlink(missing_ok=True)
-    if db_path.exists() and not _check_existing_database(db_path, images):
-        db_path.unlink()  # images were being imported when the run stopped: importing is cheap
+    uses_colmap_reader = hasattr(backend, "extract_to_database")
+    unreadable = _unreadable(images, progress) if uses_colmap_reader else {}
+    readable = set_aside(images, unreadable)
+    if db_path.exists() and not _check_existing_database(db_path, readable):
+        colmap.remove_database(db_path)  # images were being imported when the run stopped: importing is cheap
     records.mark_started(out_dir, STAGE, key)
 
-    camera_mode = resolve_camera_mode(images, conf)
+    camera_mode = resolve_camera_mode(readable, conf)
     if not db_path.exists():
-        with atomic_path(db_path) as tmp:
-            tmp.unlink()
-            colmap.create_database(tmp)
-            colmap.import_images(tmp, images.root, images.names, camera_mode=camera_mode,
-                                 camera_model=conf.camera_model, camera_params=conf.camera_params,
-                                 default_focal_length_factor=conf.default_focal_length_factor)
-    if hasattr(backend, "extract_to_database"):
-        todo = sorted(set(images.names) - colmap.images_with_keypoints(db_path))
+        _new_database(db_path, readable, conf, camera_mode)
+    if uses_colmap_reader:
+        todo = sorted(set(readable.names) - colmap.images_with_keypoints(db_path))
         if todo:
-            backend.extract_to_database(db_path, images, todo, progress=progress)
-        counts = _export_h5(db_path, h5_path, images, progress)
+            ensure_free_space(out_dir, _bytes_per_image(conf) * len(todo))
+            backend.extract_to_database(db_path, readable, todo, progress=progress)
+        failed = _failed_in_extraction(readable, colmap.images_with_keypoints(db_path), todo)
+        readable = set_aside(readable, failed)
+        counts = _export_h5(db_path, h5_path, readable, progress)
     else:
-        counts = _extract_to_h5(backend, conf, images, h5_path, executor, progress)
-        _import_keypoints(db_path, h5_path, images.names)
+        counts, failed = _extract_to_h5(backend, conf, readable, h5_path, executor, progress)
+        readable = set_aside(readable, failed)
+        _import_keypoints(db_path, h5_path, readable.names)
     info = _summary(counts)
-    info.update(camera_mode=camera_mode, backend=conf.backend, features=h5_path.name)
-    records.mark_done(out_dir, STAGE, key, info)
+    info.update(camera_mode=camera_mode, backend=conf.backend, features=h5_path.name,
+                skipped={**unreadable, **failed})
+    records.mark_done(out_dir, STAGE, key, info, outputs=_outputs(db_path, h5_path))
     return h5_path
+
+
+def usable(images: ImageSet, out_dir: Path) -> ImageSet:
+    """The images of a finished extraction: without those its record lists as unreadable."""
+    skipped = records.done_info(out_dir, STAGE).get("skipped", {})
+    return set_aside(images, {n: r for n, r in skipped.items() if n in images.sizes})
+
+
+def _outputs(db_path: Path, h5_path: Path) -> dict:
+    summary = colmap.database_summary(db_path) or {}
+    return {h5_path.name: features_digest(h5_path),
+            DB_NAME: {k: summary.get(k) for k in ("num_images", "num_images_with_keypoints", "keypoints_digest")}}
+
+
+def _outputs_intact(out_dir: Path, db_path: Path, h5_path: Path) -> bool:
+    """Whether the files of a finished extraction still hold what it wrote.
+
+    A damaged or changed features file is redone (False, with a warning): it is made again from
+    the database (SIFT) or the images. A damaged or changed database cannot be mended without
+    redoing the matches too: DamagedOutputError says so.
+    """
+    if not db_path.exists() or not h5_path.exists():
+        return False
+    fix = "run again with --overwrite to extract the features again (matching is redone too)"
+    try:
+        summary = colmap.database_summary(db_path) or {}
+    except DamagedOutputError as exc:
+        raise DamagedOutputError(f"{exc}; {fix}") from None
+    recorded = records.recorded_outputs(out_dir, STAGE)
+    now_db = {k: summary.get(k) for k in ("num_images", "num_images_with_keypoints", "keypoints_digest")}
+    if DB_NAME in recorded and recorded[DB_NAME] != now_db:
+        raise DamagedOutputError(f"{db_path} no longer holds the keypoints that the extract stage wrote "
+                                 f"(changed by another program?); {fix}")
+    try:
+        now_h5 = features_digest(h5_path)
+    except DamagedOutputError as exc:
+        logger.warning("%s: extracting the features again", exc)
+        h5_path.unlink()
+        return False
+    if h5_path.name in recorded and recorded[h5_path.name] != now_h5:
+        logger.warning("%s differs from what the extract stage wrote (changed or damaged): extracting again",
+                       h5_path)
+        h5_path.unlink()
+        return False
+    return True
+
+
+def _new_database(db_path: Path, images: ImageSet, conf: ExtractConfig, camera_mode: str) -> None:
+    colmap.remove_database(db_path)
+    with atomic_path(db_path) as tmp:
+        tmp.unlink()
+        colmap.create_database(tmp)
+        colmap.import_images(tmp, images.root, images.names, camera_mode=camera_mode,
+                             camera_model=conf.camera_model, camera_params=conf.camera_params,
+                             default_focal_length_factor=conf.default_focal_length_factor)
+
+
+def _unreadable(images: ImageSet, progress: bool) -> dict[str, str]:
+    """Images that COLMAP's reader (the one its SIFT extraction uses) cannot decode: name -> why."""
+    out = {}
+    for name in tqdm(images.names, desc="check images (COLMAP)", unit="img", disable=not progress):
+        problem = colmap.image_read_problem(images.root / name)
+        if problem is not None:
+            out[name] = problem
+    return out
+
+
+def _failed_in_extraction(images: ImageSet, with_keypoints: set[str], todo: list[str]) -> dict[str, str]:
+    """Images COLMAP did not extract although they were readable at the check: gone or changed since."""
+    out = {}
+    for name in todo:
+        if name in with_keypoints:
+            continue
+        path = images.root / name
+        if not path.exists():
+            out[name] = "the file disappeared during extraction"
+        else:
+            out[name] = colmap.image_read_problem(path) or "COLMAP's extraction skipped it (see its log in logs/)"
+    return out
+
+
+def _bytes_per_image(conf: ExtractConfig) -> int:
+    """About what one image adds to the database and the features file, in bytes (half the
+    configured maximum of features: (2 + 4) float32 keypoint values, 128 descriptor bytes in the
+    database; float16 descriptors, keypoints and scores in the HDF5 file)."""
+    return conf.max_num_features // 2 * (6 * 4 + 128 + 128 * 2 + 3 * 4)
 
 
 def _partial(h5_path: Path) -> Path:
@@ -167,15 +260,25 @@ def _backend_key(conf: ExtractConfig) -> tuple:
     return tuple(sorted(conf.__dict__.items()))
 
 
-def _extract_images(job: _ExtractJob) -> list[Keypoints]:
+def _extract_images(job: _ExtractJob) -> list[Keypoints | str]:
+    """Features of each image of the job, or why it could not be read (a file gone or damaged since
+    the scan must not stop the whole extraction)."""
     key = _backend_key(job.conf)
     if key not in _BACKENDS:
         single_threaded_torch_in_worker()
+        colmap.quiet_signals_in_worker()
         _BACKENDS.clear()
         _BACKENDS[key] = make_backend(job.conf)
-    out = []
+    out: list[Keypoints | str] = []
     for name in job.names:
-        pixels, factors = load_image(Path(job.root) / name, job.conf.max_image_size)
+        try:
+            pixels, factors = load_image(Path(job.root) / name, job.conf.max_image_size)
+        except FileNotFoundError:
+            out.append("the file disappeared during extraction")
+            continue
+        except (OSError, ValueError, SyntaxError) as exc:  # what Pillow raises on a damaged file
+            out.append(f"could not be decoded during extraction ({exc})")
+            continue
         found = _BACKENDS[key].extract(pixels)
         out.append(Keypoints(xy=to_full_resolution(found.xy, factors), scores=np.asarray(found.scores, np.float32),
                              descriptors=np.asarray(found.descriptors)))
@@ -187,14 +290,15 @@ EXTRACT_CHUNK = 8
 
 
 def _extract_to_h5(backend: LocalFeatures, conf: ExtractConfig, images: ImageSet, h5_path: Path,
-                   executor: Executor | None, progress: bool) -> dict[str, int]:
+                   executor: Executor | None, progress: bool) -> tuple[dict[str, int], dict[str, str]]:
     """Run a pixel backend over every image into `h5_path`, resumably (a `.partial` file grows
-    chunk by chunk and is renamed when complete). Returns keypoints per image."""
+    chunk by chunk and is renamed when complete). Returns keypoints per image, and the images that
+    could not be read (name -> why)."""
     partial = _partial(h5_path)
     try:
         with h5py.File(partial, "a") as h5:
             done = {n for n in images.names if has_features(h5, n)}
-    except OSError:  # cut short while being written: start over
+    except H5_ERRORS:  # cut short while being written: start over
         partial.unlink(missing_ok=True)
         done = set()
     todo = [n for n in images.names if n not in done]
@@ -202,18 +306,24 @@ def _extract_to_h5(backend: LocalFeatures, conf: ExtractConfig, images: ImageSet
     _BACKENDS[_backend_key(conf)] = backend  # in this process, reuse the one already loaded
     results = (executor or SerialExecutor()).map(
         _extract_images, [_ExtractJob(conf, str(images.root), chunk) for chunk in chunks])
+    failed: dict[str, str] = {}
     with h5py.File(partial, "a") as h5, tqdm(total=len(images.names), initial=len(done),
                                               desc=f"extract {backend.name}", unit="img",
                                               disable=not progress) as bar:
         for chunk, found in zip(chunks, results):
-            for name, kp in zip(chunk, found):
+            ready = {name: kp for name, kp in zip(chunk, found) if not isinstance(kp, str)}
+            failed.update({name: kp for name, kp in zip(chunk, found) if isinstance(kp, str)})
+            # HDF5 crashes on a full disk: make sure the chunk fits before writing it
+            ensure_free_space(h5_path.parent, sum(kp.xy.nbytes + kp.descriptors.nbytes + kp.scores.nbytes
+                                                  for kp in ready.values()) + 4096 * len(chunk))
+            for name, kp in ready.items():
                 write_features(h5, name, Features(keypoints=kp.xy, descriptors=kp.descriptors, scores=kp.scores,
                                                   image_size=images.sizes[name]))
             h5.flush()
             bar.update(len(chunk))
-        counts = {n: int(h5[n]["keypoints"].shape[0]) for n in images.names}
+        counts = {n: int(h5[n]["keypoints"].shape[0]) for n in images.names if n not in failed}
     partial.replace(h5_path)
-    return counts
+    return counts, failed
 
 
 def _import_keypoints(db_path: Path, h5_path: Path, names: list[str]) -> None:
@@ -227,17 +337,19 @@ def _import_keypoints(db_path: Path, h5_path: Path, names: list[str]) -> None:
 
 
 def _export_h5(db_path: Path, h5_path: Path, images: ImageSet, progress: bool) -> dict[str, int]:
-    """Copy the database's SIFT features into `h5_path`; returns keypoints per image."""
+    """Copy the database's SIFT features of `images` into `h5_path`; returns keypoints per image."""
     num_kp: dict[str, int] = {}
     with colmap.open_database(db_path) as db, atomic_path(h5_path) as tmp:
         with h5py.File(tmp, "w") as h5:
-            for im in tqdm(sorted(db.read_all_images(), key=lambda im: im.name), desc=f"write {h5_path.name}",
-                           unit="img", disable=not progress):
-                kp, scale, desc = colmap.read_sift(db, im.image_id)
-                write_features(h5, im.name, Features(
+            ids = sorted((im.name, im.image_id) for im in db.read_all_images() if im.name in images.sizes)
+            for name, image_id in tqdm(ids, desc=f"write {h5_path.name}", unit="img", disable=not progress):
+                kp, scale, desc = colmap.read_sift(db, image_id)
+                # HDF5 crashes on a full disk: make sure the image fits before writing it
+                ensure_free_space(h5_path.parent, len(kp) * (8 + 4 + 2 * desc.shape[-1]) + 4096)
+                write_features(h5, name, Features(
                     keypoints=colmap.colmap_to_hloc_keypoints(kp), descriptors=hloc_descriptors(desc),
-                    scores=scale, image_size=images.sizes[im.name]))
-                num_kp[im.name] = len(kp)
+                    scores=scale, image_size=images.sizes[name]))
+                num_kp[name] = len(kp)
     return num_kp
 
 

@@ -2,6 +2,11 @@
 
 Components are numbered by decreasing size, so `sparse/0` is always the largest model, the one
 that 3DGS, nerfstudio and COLMAP's GUI open by default.
+
+The new models are built in `.sara/sparse.partial` and swapped in only when there is at least one:
+a run that finds no model keeps the previous `sparse/` and raises NoResultError with the reason.
+A finished stage is trusted only while `sparse/` holds what it wrote; a model changed since (edited
+in COLMAP's GUI, or damaged) is never overwritten on resume: DamagedOutputError says what to do.
 """
 
 from __future__ import annotations
@@ -9,33 +14,68 @@ from __future__ import annotations
 import logging
 import shutil
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 from tqdm import tqdm
 
 from . import colmap
 from .config import MapConfig
-from .io import records
+from .io import DamagedOutputError, NoResultError, file_digest, fingerprint, records
 
 logger = logging.getLogger(__name__)
 
 STAGE = "map"
+PARTIAL = "sparse.partial"
+OLD = "sparse.old"
 
 
 def run(conf: MapConfig, db_path: Path, images_root: Path, out_dir: Path, *, seed: int = 0,
-        upstream_key: str = "", progress: bool = True) -> Path:
+        upstream_key: str = "", progress: bool = True, min_num_inliers: int = 15,
+        commit: Callable[[], None] | None = None) -> Path:
     """Map the matched database into `out_dir/sparse/N`; returns `sparse/` (component sizes and the
-    time taken go into the stage record)."""
+    time taken go into the stage record).
+
+    `commit`, when given, runs once the new model exists (or the current one is up to date), just
+    before it is swapped in: the pipeline moves the matches it was built from into place there.
+    """
     out_dir = Path(out_dir)
     sparse = out_dir / "sparse"
     key = state_key(conf, seed, upstream_key)
-    if records.is_done(out_dir, STAGE, key) and sparse.exists():
+    if records.is_done(out_dir, STAGE, key) and _model_intact(out_dir, sparse):
         logger.info("map: model up to date, skipping")
+        if commit is not None:
+            commit()
         return sparse
+    previous = records.read_record(out_dir, STAGE)
     records.mark_started(out_dir, STAGE, key)
-    tmp = out_dir / ".sara" / "sparse.partial"
+    tmp = out_dir / ".sara" / PARTIAL
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
+    try:
+        recs, num_images, elapsed = _map(conf, db_path, images_root, tmp, seed, progress)
+        sizes = colmap.write_models_by_size(tmp, recs)
+        if not sizes:
+            kept = "; the previous model in sparse/ is kept" if colmap_models(sparse) else ""
+            raise NoResultError(f"map: no model could be built: {no_model_reason(db_path, conf, min_num_inliers)}{kept}")
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        records.restore(out_dir, STAGE, previous)
+        raise
+    if commit is not None:
+        commit()
+    swap_in(tmp, sparse)
+    info = {"time_s": elapsed, "num_components": len(sizes), "component_sizes": sizes,
+            "num_registered": sizes[0], "num_images": num_images}
+    records.mark_done(out_dir, STAGE, key, info, outputs={"sparse": model_digest(sparse)})
+    if len(sizes) > 1:
+        logger.warning("map: the scene split into %d models of %s images", len(sizes), sizes)
+    return sparse
+
+
+def _map(conf: MapConfig, db_path: Path, images_root: Path, tmp: Path, seed: int,
+         progress: bool) -> tuple[dict, int, float]:
     num_images = len(colmap.database_images(db_path))
     colmap.set_seed(seed)
     tic = time.perf_counter()
@@ -50,22 +90,74 @@ def run(conf: MapConfig, db_path: Path, images_root: Path, out_dir: Path, *, see
         recs = colmap.global_mapping(db_path, images_root, tmp, seed=seed, num_threads=conf.num_threads)
     else:
         raise ValueError(f"unknown mapper {conf.mapper!r}; choose incremental or global")
-    elapsed = time.perf_counter() - tic
-    sizes = colmap.write_models_by_size(tmp, recs)
+    return recs, num_images, time.perf_counter() - tic
+
+
+def no_model_reason(db_path: Path, conf: MapConfig, min_num_inliers: int) -> str:
+    """Why the mapper found no model, from the verified pairs of the database."""
+    num_pairs, num_images, groups = colmap.verified_graph(db_path, min_num_inliers)
+    if num_pairs == 0:
+        return (f"no image pair has {min_num_inliers} or more verified matches (match.min_num_inliers): "
+                "the images do not overlap, or the pairs are wrong")
+    if groups[0] < conf.min_model_size:
+        return (f"the largest group of images linked by verified pairs has {groups[0]} images "
+                f"({num_pairs} verified pairs), fewer than map.min_model_size={conf.min_model_size}; "
+                f"lower it (-s map.min_model_size={max(2, groups[0])}) or add images")
+    return (f"the mapper found no pair of images to start from among {num_images} images linked by "
+            f"{num_pairs} verified pairs (too little parallax between the views, or the matches lie on a plane)")
+
+
+def swap_in(new: Path, sparse: Path) -> None:
+    """Replace `sparse` by the folder `new`; a run killed in between leaves the old one in
+    `.sara/sparse.old`, which `recover` puts back."""
+    old = new.parent / OLD
+    shutil.rmtree(old, ignore_errors=True)
     if sparse.exists():
-        shutil.rmtree(sparse)
-    tmp.rename(sparse)
-    info = {"time_s": elapsed, "num_components": len(sizes), "component_sizes": sizes,
-            "num_registered": sizes[0] if sizes else 0, "num_images": num_images}
-    records.mark_done(out_dir, STAGE, key, info)
-    if not sizes:
-        logger.warning("map: no model could be built (too few verified matches)")
-    elif len(sizes) > 1:
-        logger.warning("map: the scene split into %d models of %s images", len(sizes), sizes)
-    return sparse
+        sparse.rename(old)
+    new.rename(sparse)
+    shutil.rmtree(old, ignore_errors=True)
+
+
+def recover(out_dir: Path) -> None:
+    """After a run killed while swapping models: put the previous `sparse/` back when the new one
+    never arrived (call it while holding the output folder's lock)."""
+    out_dir = Path(out_dir)
+    old = out_dir / ".sara" / OLD
+    if old.is_dir():
+        if (out_dir / "sparse").exists():
+            shutil.rmtree(old, ignore_errors=True)
+        else:
+            old.rename(out_dir / "sparse")
+
+
+def colmap_models(sparse: Path) -> list[Path]:
+    sparse = Path(sparse)
+    if not sparse.is_dir():
+        return []
+    return sorted((p for p in sparse.iterdir() if p.is_dir() and colmap.has_model(p)), key=lambda p: p.name)
+
+
+def model_digest(sparse: Path) -> dict[str, Any]:
+    """Size and hash of every file of every model folder under `sparse/`."""
+    sparse = Path(sparse)
+    if not sparse.is_dir():
+        return {}
+    return {f"{sub.name}/{f.name}": file_digest(f) for sub in sorted(sparse.iterdir()) if sub.is_dir()
+            for f in sorted(sub.iterdir()) if f.is_file()}
+
+
+def _model_intact(out_dir: Path, sparse: Path) -> bool:
+    """Whether `sparse/` still holds the models the stage wrote. Missing: False (map again).
+    Changed: DamagedOutputError, never overwritten (a person may have edited it)."""
+    if not sparse.exists():
+        return False
+    recorded = records.recorded_outputs(out_dir, STAGE).get("sparse")
+    if recorded is None or recorded == model_digest(sparse):
+        return True
+    raise DamagedOutputError(
+        f"{sparse} was changed after the map stage wrote it (edited, or damaged); move it away or delete it "
+        "to map again, or keep it and use another output folder")
 
 
 def state_key(conf: MapConfig, seed: int, upstream_key: str) -> str:
-    from .io import fingerprint
-
     return fingerprint({"conf": conf.__dict__, "seed": seed, "upstream": upstream_key})

@@ -16,7 +16,7 @@ from tqdm import tqdm
 from . import colmap
 from .config import MatchConfig
 from .execute import Executor, SerialExecutor, single_threaded_torch_in_worker
-from .io import fingerprint, read_json, records, write_json_atomic
+from .io import DamagedOutputError, NoResultError, ensure_free_space, fingerprint, read_json, records, write_json_atomic
 from .io.h5 import FeatureCache
 from .io.pairs import Pair, read_pairs, write_pairs
 from .matchers import Matcher, make_matcher, resolve_name
@@ -28,42 +28,159 @@ CONF_RECORD = "match-settings"
 PROGRESS_RECORD = "match-progress"
 
 
+NEXT_DB_NAME = "database.next.db"
+#: about what one matched pair adds to the database (matches and inlier matches), bytes
+BYTES_PER_PAIR = 64 * 1024
+
+
 def run(conf: MatchConfig, pairs_path: Path, db_path: Path, out_dir: Path, *, features_path: Path,
-        features_backend: str = "sift", executor: Executor | None = None, progress: bool = True) -> Path:
-    """Match every pair of `pairs_path` into the database; returns the database path (counts and
-    the time taken go into the stage record).
+        features_backend: str = "sift", executor: Executor | None = None, progress: bool = True,
+        beside: bool = False) -> Path:
+    """Match every pair of `pairs_path` into the database; returns the database that holds the
+    matches (counts and the time taken go into the stage record).
 
     The database ends up holding the matches of exactly these pairs: matches left by another pairs
-    file are removed first. An interrupted run resumes (COLMAP skips pairs already matched).
+    file are removed first. An interrupted run resumes (pairs already matched are skipped).
+
+    With `beside`, a database that already holds matches is not changed: the work is done in a
+    copy, `.sara/database.next.db`, which is returned; the caller moves it into place with
+    `commit` once what follows succeeded, so a failed run keeps the previous matches. When no pair
+    gets a verified geometry, NoResultError is raised and the previous matches are kept.
     """
     out_dir = Path(out_dir)
-    restore_names(db_path, out_dir)  # after a run killed while names were aliased
+    next_db = out_dir / ".sara" / NEXT_DB_NAME
+    _checked_summary(db_path)
+    restore_names([db_path, next_db], out_dir)  # after a run killed while names were aliased
+    before = _checked_summary(db_path)
     names = colmap.database_images(db_path)
     pairs = read_pairs(pairs_path, known_names=names)
+    if not pairs:
+        raise NoResultError(f"{pairs_path} lists no pairs: nothing to match (the previous matches are kept)")
     matcher_name = resolve_name(conf, features_backend)
     key = fingerprint({"pairs": pairs, "conf": {**conf.__dict__, "backend": matcher_name},
-                       "features": Path(features_path).name})
-    if records.is_done(out_dir, STAGE, key):
+                       "features": Path(features_path).name, "keypoints": before["keypoints_digest"]})
+    ready = _finished_database(out_dir, key, db_path, next_db, before)
+    if ready is not None:
         logger.info("match: %d pairs already matched, skipping", len(pairs))
-        return Path(db_path)
+        return ready
     matcher = make_matcher(conf, features_backend)  # loads weights: fails here, before any work
     conf_key = fingerprint({**conf.__dict__, "backend": matcher_name, "features": Path(features_path).name})
-    if not records.is_done(out_dir, CONF_RECORD, conf_key):
-        _clear_matches(db_path)  # a fresh start, or matches made with other settings
+    same_settings = records.is_done(out_dir, CONF_RECORD, conf_key)
+    work = _work_database(db_path, next_db, out_dir, key, beside=beside and before["num_matched_pairs"] > 0
+                          and not (same_settings and _only_additions(db_path, pairs, names)))
+    if not same_settings:
+        _clear_matches(work)  # a fresh start, or matches made with other settings
         records.mark_done(out_dir, CONF_RECORD, conf_key)
     else:
-        _remove_other_pairs(db_path, pairs, names)  # keep the matches that are still wanted
+        _remove_other_pairs(work, pairs, names)  # keep the matches that are still wanted
+    previous = records.read_record(out_dir, STAGE)
     records.mark_started(out_dir, STAGE, key)
+    elapsed, num_done = _match_all(conf, matcher, features_backend, features_path, pairs, names, work, out_dir, key,
+                                   executor, progress)
+    info = {"num_pairs": len(pairs), "num_matched_now": num_done, "time_s": elapsed, "matcher": matcher.name,
+            **verification_stats(work, conf.min_num_inliers)}
+    if info["num_verified_pairs"] == 0:
+        records.restore(out_dir, STAGE, previous)
+        if work != Path(db_path):
+            colmap.remove_database(work)
+        raise NoResultError(
+            f"none of the {len(pairs)} pairs has {conf.min_num_inliers} or more verified matches "
+            f"(match.min_num_inliers): the images do not overlap, or the pairs are wrong"
+            + ("; the previous matches are kept" if before["num_matched_pairs"] else ""))
+    records.mark_done(out_dir, STAGE, key, info, outputs={DB_NAME: matches_digest(work)})
+    logger.info("match: %d pairs in %.1f s, %d verified", len(pairs), elapsed, info["num_verified_pairs"])
+    return work
 
-    todo = _unmatched(db_path, pairs, names)
+
+DB_NAME = "database.db"
+
+
+def commit(work: Path, db_path: Path) -> None:
+    """Move the database returned by `run` onto `db_path` (nothing to do when it is `db_path`)."""
+    if Path(work) != Path(db_path):
+        colmap.replace_database(work, db_path)
+
+
+def matches_digest(db_path: Path) -> dict:
+    """What identifies the matches of a database: counts and a digest of every pair's match and
+    inlier counts."""
+    summary = colmap.database_summary(db_path) or {}
+    return {k: summary.get(k) for k in ("num_matched_pairs", "num_verified_pairs", "matches_digest")}
+
+
+def _checked_summary(db_path: Path) -> dict:
+    try:
+        summary = colmap.database_summary(db_path)
+    except DamagedOutputError as exc:
+        raise DamagedOutputError(f"{exc}; run again with --overwrite to redo extraction and matching") from None
+    if summary is None:
+        raise FileNotFoundError(f"{db_path} not found: run the extract stage first")
+    return summary
+
+
+def _finished_database(out_dir: Path, key: str, db_path: Path, next_db: Path, summary: dict) -> Path | None:
+    """The database that holds the finished matches of `key`: `db_path`, or a copy that a run killed
+    before moving it into place left in `.sara/` (None when the stage must run)."""
+    if not records.is_done(out_dir, STAGE, key):
+        return None
+    recorded = records.recorded_outputs(out_dir, STAGE).get(DB_NAME)
+    now = {k: summary.get(k) for k in ("num_matched_pairs", "num_verified_pairs", "matches_digest")}
+    if recorded is None or recorded == now:
+        return Path(db_path)
+    if next_db.exists():
+        try:
+            if matches_digest(next_db) == recorded:
+                return next_db
+        except DamagedOutputError:
+            pass
+    logger.warning("%s no longer holds the matches that the match stage recorded (changed, damaged, or a "
+                   "run stopped before it was updated): matching again", db_path)
+    return None
+
+
+def _work_database(db_path: Path, next_db: Path, out_dir: Path, key: str, *, beside: bool) -> Path:
+    """`db_path` itself, or with `beside` a copy in `.sara/` (resumed when a killed run of the
+    same pairs left one that holds the same images and keypoints)."""
+    if not beside:
+        colmap.remove_database(next_db)
+        return Path(db_path)
+    progress_record = records.read_record(out_dir, PROGRESS_RECORD) or {}
+    if next_db.exists() and progress_record.get("key") == key and progress_record.get("info", {}).get("beside"):
+        try:
+            same = (colmap.database_summary(next_db) or {}).get("keypoints_digest") == \
+                (colmap.database_summary(db_path) or {}).get("keypoints_digest")
+        except DamagedOutputError:
+            same = False
+        if same:
+            return next_db
+    colmap.remove_database(next_db)
+    ensure_free_space(out_dir, Path(db_path).stat().st_size)
+    colmap.copy_database(db_path, next_db)
+    records.mark_done(out_dir, PROGRESS_RECORD, key, {"time_s": 0.0, "beside": True})
+    return next_db
+
+
+def _only_additions(db_path: Path, pairs: list[Pair], ids: dict[str, int]) -> bool:
+    """Whether matching `pairs` only adds to the database (every pair it holds is wanted)."""
+    wanted = {tuple(sorted((ids[a], ids[b]))) for a, b in pairs}
+    with colmap.open_database(db_path) as db:
+        return all((i, j) in wanted for i, j, _ in colmap.verified_image_pairs(db))
+
+
+def _match_all(conf: MatchConfig, matcher: Matcher, features_backend: str, features_path: Path, pairs: list[Pair],
+               names: dict[str, int], work: Path, out_dir: Path, key: str, executor: Executor | None,
+               progress: bool) -> tuple[float, int]:
+    """Match and verify the pairs not yet in `work`, chunk by chunk; returns (seconds, pairs done)."""
+    todo = _unmatched(work, pairs, names)
     # time spent by earlier, interrupted runs on these very pairs counts too
     progress_record = records.read_record(out_dir, PROGRESS_RECORD) or {}
-    earlier_s = float(progress_record.get("info", {}).get("time_s", 0.0)) if progress_record.get("key") == key else 0.0
+    earlier = progress_record.get("info", {}) if progress_record.get("key") == key else {}
+    earlier_s, beside = float(earlier.get("time_s", 0.0)), work.name == NEXT_DB_NAME
     tic = time.perf_counter()
     chunk_path = out_dir / ".sara" / "match_chunk.txt"
     chunks = [todo[k:k + conf.chunk_size] for k in range(0, len(todo), conf.chunk_size)]
     with tqdm(total=len(pairs), initial=len(pairs) - len(todo), desc=f"match pairs ({matcher.name})", unit="pair",
-              disable=not progress) as bar, space_free_names(db_path, out_dir) as alias:
+              disable=not progress) as bar, space_free_names(work, out_dir) as alias:
         if hasattr(matcher, "match_in_database"):
             found: Iterator[list[np.ndarray] | None] = iter([None] * len(chunks))
         else:
@@ -71,22 +188,19 @@ def run(conf: MatchConfig, pairs_path: Path, db_path: Path, out_dir: Path, *, fe
             jobs = [_MatchJob(conf, features_backend, str(features_path), chunk) for chunk in chunks]
             found = (executor or SerialExecutor()).map(_match_chunk, jobs)
         for chunk, matches in zip(chunks, found):
+            ensure_free_space(out_dir, BYTES_PER_PAIR * len(chunk))  # SQLite inside COLMAP on a full disk: unclear
             renamed = [(alias.get(a, a), alias.get(b, b)) for a, b in chunk]
             write_pairs(chunk_path, renamed)
             if matches is None:
-                matcher.match_in_database(db_path, chunk_path)
+                matcher.match_in_database(work, chunk_path)
             else:
-                colmap.write_matches(db_path, dict(zip(renamed, matches)))
-                colmap.verify_pairs(db_path, chunk_path, min_num_inliers=conf.min_num_inliers)
+                colmap.write_matches(work, dict(zip(renamed, matches)))
+                colmap.verify_pairs(work, chunk_path, min_num_inliers=conf.min_num_inliers)
             bar.update(len(chunk))
-            records.mark_done(out_dir, PROGRESS_RECORD, key, {"time_s": earlier_s + time.perf_counter() - tic})
+            records.mark_done(out_dir, PROGRESS_RECORD, key,
+                              {"time_s": earlier_s + time.perf_counter() - tic, "beside": beside})
     chunk_path.unlink(missing_ok=True)
-    elapsed = earlier_s + time.perf_counter() - tic
-    info = {"num_pairs": len(pairs), "num_matched_now": len(todo), "time_s": elapsed, "matcher": matcher.name,
-            **verification_stats(db_path, conf.min_num_inliers)}
-    records.mark_done(out_dir, STAGE, key, info)
-    logger.info("match: %d pairs in %.1f s, %d verified", len(pairs), elapsed, info["num_verified_pairs"])
-    return Path(db_path)
+    return earlier_s + time.perf_counter() - tic, len(todo)
 
 
 @dataclass(frozen=True)
@@ -112,6 +226,7 @@ def _match_chunk(job: _MatchJob) -> list[np.ndarray]:
     key = _matcher_key(job.conf, job.features_backend)
     if key not in _MATCHERS:
         single_threaded_torch_in_worker()
+        colmap.quiet_signals_in_worker()
         _MATCHERS.clear()
         _MATCHERS[key] = make_matcher(job.conf, job.features_backend)
     if job.features_path not in _READERS:
@@ -126,36 +241,46 @@ def _match_chunk(job: _MatchJob) -> list[np.ndarray]:
 ALIASES_NAME = "name_aliases.json"
 
 
+def needs_alias(name: str) -> bool:
+    """Whether COLMAP's pair importer would misread a name: it trims each line, skips lines that
+    start with '#' and splits at the first space."""
+    return name.startswith("#") or any(c.isspace() for c in name)
+
+
 @contextlib.contextmanager
 def space_free_names(db_path: Path, out_dir: Path) -> Iterator[dict[str, str]]:
-    """Rename images whose names hold spaces while COLMAP's pair importer runs.
+    """Rename images whose names COLMAP's pair importer would misread while it runs.
 
-    The importer splits lines at spaces, so such names become `sara-alias-<image_id>` in the
-    database for the duration; the mapping is saved first, so a killed run is repaired on resume.
-    Yields original name -> alias.
+    Names with spaces (anywhere, leading and trailing included) or a leading '#' become
+    `sara-alias-<image_id>` in the database for the duration; the mapping is saved first, so a
+    killed run is repaired on resume. Yields original name -> alias.
     """
     with colmap.open_database(db_path) as db:
-        spaced = {im.name: im.image_id for im in db.read_all_images() if " " in im.name}
-    if not spaced:
+        odd = {im.name: im.image_id for im in db.read_all_images() if needs_alias(im.name)}
+    if not odd:
         yield {}
         return
-    alias = {name: f"sara-alias-{image_id}" for name, image_id in spaced.items()}
+    alias = {name: f"sara-alias-{image_id}" for name, image_id in odd.items()}
     write_json_atomic(Path(out_dir) / ".sara" / ALIASES_NAME, alias)
-    _rename(db_path, {image_id: alias[name] for name, image_id in spaced.items()})
+    _rename(db_path, {image_id: alias[name] for name, image_id in odd.items()})
     try:
         yield alias
     finally:
-        restore_names(db_path, out_dir)
+        restore_names([db_path], out_dir)
 
 
-def restore_names(db_path: Path, out_dir: Path) -> None:
+def restore_names(db_paths: list[Path], out_dir: Path) -> None:
+    """Give aliased images their names back in each existing database of `db_paths`."""
     path = Path(out_dir) / ".sara" / ALIASES_NAME
     if not path.exists():
         return
     original = {a: name for name, a in read_json(path).items()}
-    with colmap.open_database(db_path) as db:
-        ids = {im.image_id: original[im.name] for im in db.read_all_images() if im.name in original}
-    _rename(db_path, ids)
+    for db_path in db_paths:
+        if not Path(db_path).exists():
+            continue
+        with colmap.open_database(db_path) as db:
+            ids = {im.image_id: original[im.name] for im in db.read_all_images() if im.name in original}
+        _rename(db_path, ids)
     path.unlink()
 
 

@@ -14,10 +14,26 @@ Files are the contract between stages; each stage reads what the one before wrot
 After mapping, a pair source may ask for more pairs (SARA's repair of views left out of the
 main model); they are matched and the model mapped again, and `pairs.txt` and the records then
 say what was really matched.
+
+Nothing lost, nothing silently wrong:
+
+- every option and name is checked before any work (`preflight`), so a bad option never touches
+  the output folder;
+- a stage trusts its record only while its outputs still hold what it wrote (`sara.io.records`):
+  derived files (features, scores) that are damaged are made again; files a person may have
+  edited (`pairs.txt`, `sparse/`) are never overwritten on resume, and a damaged database stops
+  the run, each with a message that names the file and the fix;
+- new pairs, matches and models are built beside the old ones (`.sara/`) and swapped in only when
+  complete; a run that produces nothing (no pairs, no verified pair, no model) raises NoResultError
+  and keeps the previous `pairs.txt`, matches, `sparse/`, `run.json` and `report.md`;
+- `run.json` and `report.md` are written when a run finishes (and `run.json` once when a folder's
+  first run has its features, so that `sara map OUT` finds the images);
+- files left by killed runs are removed when a run starts and ends (`sara.io.clean_temporaries`).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import os
 import platform
@@ -30,11 +46,17 @@ from typing import Any
 from . import __version__, colmap, extract, mapping, match
 from .config import PipelineConfig
 from .execute import Executor, make_executor
+from .features import BACKENDS as FEATURE_BACKENDS
 from .features import features_file_name
 from .io import (
+    DamagedOutputError,
+    IncompleteStageError,
+    NoResultError,
     OutputLock,
     atomic_path,
+    file_digest,
     fingerprint,
+    prepare_output_dir,
     read_json,
     records,
     write_json_atomic,
@@ -42,7 +64,10 @@ from .io import (
 )
 from .io.images import ImageSet, scan_images, upright_copy
 from .io.pairs import read_pairs, write_pairs
+from .matchers import BACKENDS as MATCHER_BACKENDS
+from .matchers import resolve_name
 from .pairs import SOURCES, PairContext, get_after_mapping, get_source
+from .retrieval import DESCRIPTORS
 from .tables import markdown_table
 
 logger = logging.getLogger(__name__)
@@ -91,11 +116,15 @@ def versions() -> dict[str, str]:
 
 def pairs_key(conf: PipelineConfig, extract_key: str, source_file: Path | None) -> str:
     data: dict[str, Any] = {"extract": extract_key, "pairs": conf.pairs.__dict__, "seed": conf.seed}
-    if conf.pairs.method == "sara" or conf.pairs.sequential_loop_detection or conf.pairs.method == "retrieval":
+    if _uses_retrieval(conf):
         data.update(retrieval=conf.retrieval.__dict__, score=conf.score.__dict__, graph=conf.graph.__dict__)
     if source_file is not None:
         data["file"] = source_file.read_text(encoding="utf-8", errors="replace")
     return fingerprint(data)
+
+
+def _uses_retrieval(conf: PipelineConfig) -> bool:
+    return conf.pairs.method in ("sara", "retrieval") or conf.pairs.sequential_loop_detection
 
 
 def pair_source_file(method: str) -> Path | None:
@@ -103,44 +132,147 @@ def pair_source_file(method: str) -> Path | None:
     if method in SOURCES:
         return None
     path = Path(method)
+    if path.is_dir():
+        raise IsADirectoryError(f"--pairs {method}: a folder, not a pairs file ('name0 name1' per line) "
+                                f"nor a pair source ({', '.join(SOURCES)})")
     if not path.is_file():
         raise FileNotFoundError(f"--pairs {method}: not a pair source ({', '.join(SOURCES)}) and no such pairs file")
     return path
 
 
+def preflight(conf: PipelineConfig) -> None:
+    """Check every name the run will look up (backends, descriptor, pair source), before any work.
+
+    Values in range are checked when the config is made (`sara.config.validate`); this checks the
+    names that only the registries know.
+    """
+    pair_source_file(conf.pairs.method)
+    if conf.extract.backend not in FEATURE_BACKENDS:
+        raise ValueError(f"extract.backend must be one of {', '.join(FEATURE_BACKENDS)}, got {conf.extract.backend!r}")
+    matcher = resolve_name(conf.match, conf.extract.backend)
+    if matcher not in MATCHER_BACKENDS:
+        raise ValueError(f"match.backend must be auto or one of {', '.join(MATCHER_BACKENDS)}, got {matcher!r}")
+    if _uses_retrieval(conf) and conf.retrieval.descriptor not in DESCRIPTORS:
+        raise ValueError(f"retrieval.descriptor must be one of {', '.join(DESCRIPTORS)}, "
+                         f"got {conf.retrieval.descriptor!r}")
+
+
 def pair_context(conf: PipelineConfig, images: ImageSet, features_path: Path, out_dir: Path, *,
-                 executor: Executor | None = None, progress: bool = True) -> PairContext:
+                 executor: Executor | None = None, progress: bool = True, work_dir: Path | None = None) -> PairContext:
     return PairContext(names=images.names, images_root=images.root, features_path=features_path,
-                       db_path=out_dir / extract.DB_NAME, out_dir=out_dir, conf=conf, progress=progress,
+                       db_path=out_dir / extract.DB_NAME, out_dir=work_dir or out_dir, conf=conf, progress=progress,
                        executor=executor)
+
+
+#: files that pair sources keep between runs (reused when their inputs did not change)
+PAIR_CACHES = ("global-*.h5", "vocab_tree.bin", "vocab_tree.json")
+STAGING = "pairs.next"
 
 
 def select_pairs(conf: PipelineConfig, images: ImageSet, features_path: Path, out_dir: Path, *,
                  executor: Executor | None = None, overwrite: bool = False, progress: bool = True) -> Path:
-    """Stage `pairs`: write `pairs.txt` from the configured source; returns its path."""
+    """Stage `pairs`: write `pairs.txt` from the configured source; returns its path.
+
+    The source writes its files (scores.csv, global descriptors) into `.sara/pairs.next/`; they and
+    `pairs.txt` replace the previous ones only when it selected at least one pair (else
+    NoResultError, and the previous pairs, matches and model stay).
+    """
     method = conf.pairs.method
     source_file = pair_source_file(method)
     key = pairs_key(conf, (records.read_record(out_dir, extract.STAGE) or {}).get("key", ""), source_file)
     pairs_path = out_dir / PAIRS_NAME
-    if not overwrite and records.is_done(out_dir, PAIRS_STAGE, key) and pairs_path.exists():
+    if not overwrite and records.is_done(out_dir, PAIRS_STAGE, key) and _pairs_intact(out_dir):
         logger.info("pairs: %s up to date, skipping", pairs_path)
         return pairs_path
-    records.mark_started(out_dir, PAIRS_STAGE, key)
-    records.clear(out_dir, AFTER_MAPPING_STAGE)
     tic = time.perf_counter()
-    if source_file is not None:
-        pairs = read_pairs(source_file, known_names=images.names)
-        info: dict[str, Any] = {"source": str(source_file)}
-    else:
-        ctx = pair_context(conf, images, features_path, out_dir, executor=executor, progress=progress)
-        result = get_source(method)(ctx)
-        pairs, info = result.pairs, {**result.info, "timings_s": result.timings_s}
+    staging = out_dir / ".sara" / STAGING
+    shutil.rmtree(staging, ignore_errors=True)
+    try:
+        if source_file is not None:
+            pairs = read_pairs(source_file, known_names=images.names)
+            info: dict[str, Any] = {"source": str(source_file)}
+        else:
+            _seed_caches(out_dir, staging)
+            ctx = pair_context(conf, images, features_path, out_dir, executor=executor, progress=progress,
+                               work_dir=staging)
+            result = get_source(method)(ctx)
+            pairs, info = result.pairs, {**result.info, "timings_s": result.timings_s}
+        if not pairs:
+            raise NoResultError(_no_pairs_reason(method, source_file, info, len(images.names), out_dir))
+        produced = _swap_in_pair_files(staging, out_dir, key)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
     write_pairs(pairs_path, pairs)
     n = len(images.names)
     info.update(method=method, num_pairs=len(pairs), num_selected=len(pairs), time_s=time.perf_counter() - tic,
                 fraction_of_exhaustive=len(pairs) / max(1, n * (n - 1) // 2))
-    records.mark_done(out_dir, PAIRS_STAGE, key, info)
+    outputs = {name: file_digest(out_dir / name) for name in [PAIRS_NAME, *produced] if name in _TRACKED_PAIR_FILES}
+    records.mark_done(out_dir, PAIRS_STAGE, key, info, outputs=outputs)
     return pairs_path
+
+
+#: outputs of the pairs stage whose digests the record keeps (caches check themselves)
+_TRACKED_PAIR_FILES = (PAIRS_NAME, "scores.csv")
+
+
+def _seed_caches(out_dir: Path, staging: Path) -> None:
+    """Copy the caches of earlier pair selections into the staging folder (a source reuses them)."""
+    staging.mkdir(parents=True, exist_ok=True)
+    for pattern in PAIR_CACHES:
+        for path in out_dir.glob(pattern):
+            if path.is_file():
+                shutil.copy2(path, staging / path.name)
+
+
+def _swap_in_pair_files(staging: Path, out_dir: Path, key: str) -> list[str]:
+    """Move what the source wrote into the output folder; returns the file names."""
+    records.mark_started(out_dir, PAIRS_STAGE, key)
+    records.clear(out_dir, AFTER_MAPPING_STAGE)
+    produced = []
+    if staging.is_dir():
+        for path in sorted(staging.iterdir()):
+            if path.is_file():
+                os.replace(path, out_dir / path.name)
+                produced.append(path.name)
+    return produced
+
+
+def _no_pairs_reason(method: str, source_file: Path | None, info: dict[str, Any], num_images: int,
+                     out_dir: Path) -> str:
+    kept = " (the previous pairs, matches and model are kept)" if (out_dir / PAIRS_NAME).exists() else ""
+    if source_file is not None:
+        return f"{source_file} lists no pairs: nothing to match{kept}"
+    if num_images < 2:
+        return f"only {num_images} usable image: a reconstruction needs at least 2{kept}"
+    if "num_candidates" in info:
+        rejected = ", ".join(f"{k} {v}" for k, v in sorted(info.get("rejected", {}).items())) or "none"
+        return (f"the {method} pair source selected no pairs: {info.get('num_accepted', 0)} of "
+                f"{info['num_candidates']} candidate pairs accepted (rejected: {rejected}); relax the "
+                f"score.* thresholds{kept}")
+    return f"the {method} pair source selected no pairs{kept}"
+
+
+def _pairs_intact(out_dir: Path) -> bool:
+    """Whether the pairs stage's files still hold what it wrote.
+
+    `pairs.txt` missing: select again (False). Changed (edited, emptied, cut short): never
+    overwritten, DamagedOutputError says what to do. `scores.csv` changed or damaged: made again
+    (False, with a warning).
+    """
+    pairs_path = out_dir / PAIRS_NAME
+    if not pairs_path.exists():
+        return False
+    recorded = records.recorded_outputs(out_dir, PAIRS_STAGE)
+    if PAIRS_NAME in recorded and recorded[PAIRS_NAME] != file_digest(pairs_path):
+        raise DamagedOutputError(
+            f"{pairs_path} was changed after the pairs stage wrote it (edited, emptied or cut short); delete it to "
+            f"select the pairs again, or match your own pairs with `sara match {out_dir} --pairs FILE`")
+    for name in _TRACKED_PAIR_FILES[1:]:
+        if name in recorded and recorded[name] != file_digest(out_dir / name):
+            logger.warning("%s differs from what the pairs stage wrote (changed, damaged or missing): selecting "
+                           "the pairs again", out_dir / name)
+            return False
+    return True
 
 
 # ---------------------------------------------------------------------------------------------
@@ -149,17 +281,23 @@ def select_pairs(conf: PipelineConfig, images: ImageSet, features_path: Path, ou
 
 
 def match_pairs(conf: PipelineConfig, pairs_path: Path, features_path: Path, out_dir: Path, *,
-                executor: Executor | None = None, progress: bool = True) -> Path:
-    """Stage `match` with this run's matcher; returns the database."""
+                executor: Executor | None = None, progress: bool = True, beside: bool = False) -> Path:
+    """Stage `match` with this run's matcher; returns the database that holds the matches (with
+    `beside`, possibly a copy to `match.commit` once mapping succeeded)."""
     return match.run(conf.match, pairs_path, out_dir / extract.DB_NAME, out_dir, features_path=features_path,
-                     features_backend=conf.extract.backend, executor=executor, progress=progress)
+                     features_backend=conf.extract.backend, executor=executor, progress=progress, beside=beside)
 
 
-def map_model(conf: PipelineConfig, images_root: Path, out_dir: Path, *, progress: bool = True) -> Path:
-    """Stage `map` on the matches now in the database; returns `sparse/`."""
-    upstream = (records.read_record(out_dir, match.STAGE) or {}).get("key", "")
-    return mapping.run(conf.map, out_dir / extract.DB_NAME, images_root, out_dir, seed=conf.seed,
-                       upstream_key=upstream, progress=progress)
+def map_model(conf: PipelineConfig, images_root: Path, out_dir: Path, *, db_path: Path | None = None,
+              progress: bool = True) -> Path:
+    """Stage `map` on the matches of `db_path` (default the output's database; a copy made by the
+    match stage is moved into place just before the new model); returns `sparse/`."""
+    db = out_dir / extract.DB_NAME
+    work = Path(db_path or db)
+    upstream = fingerprint(match.matches_digest(work))
+    return mapping.run(conf.map, work, images_root, out_dir, seed=conf.seed, upstream_key=upstream,
+                       progress=progress, min_num_inliers=conf.match.min_num_inliers,
+                       commit=lambda: match.commit(work, db))
 
 
 def after_mapping_rounds(conf: PipelineConfig, images: ImageSet, features_path: Path, out_dir: Path, *,
@@ -167,7 +305,8 @@ def after_mapping_rounds(conf: PipelineConfig, images: ImageSet, features_path: 
     """Let the pair source look at the model and ask for more pairs; match them and map again.
 
     Up to `pairs.repair_rounds` rounds. `pairs.txt` then lists every pair matched, and the pairs
-    record says how many were added. Returns the round record's info (None when no round ran).
+    record says how many were added. A round whose mapping fails keeps the previous round's pairs,
+    matches and model. Returns the round record's info (None when no round ran).
     """
     step = get_after_mapping(conf.pairs.method)
     if step is None or conf.pairs.repair_rounds <= 0:
@@ -185,10 +324,18 @@ def after_mapping_rounds(conf: PipelineConfig, images: ImageSet, features_path: 
         if not extra:
             break
         tic = time.perf_counter()
-        write_pairs(pairs_path, pairs + extra)
-        _add_to_pairs_record(out_dir, len(extra))
-        match_pairs(conf, pairs_path, features_path, out_dir, executor=ctx.executor, progress=progress)
-        map_model(conf, images.root, out_dir, progress=progress)
+        staged = out_dir / ".sara" / STAGED_PAIRS
+        write_pairs(staged, pairs + extra)
+        try:
+            work = match_pairs(conf, staged, features_path, out_dir, executor=ctx.executor, progress=progress,
+                               beside=True)
+            _map_round(conf, images.root, out_dir, work, staged, len(extra), progress)
+        except NoResultError as exc:
+            logger.warning("the %d pairs added after mapping gave no better model (%s): keeping the model as it "
+                           "was", len(extra), exc)
+            colmap.remove_database(out_dir / ".sara" / match.NEXT_DB_NAME)
+            staged.unlink(missing_ok=True)
+            break
         info["rounds"] += 1
         info["pairs_added"] += len(extra)
         info["time_s"] += time.perf_counter() - tic
@@ -198,12 +345,46 @@ def after_mapping_rounds(conf: PipelineConfig, images: ImageSet, features_path: 
     return info if info["rounds"] else None
 
 
-def _add_to_pairs_record(out_dir: Path, num_added: int) -> None:
+#: the pairs of a round after mapping, until its model replaces the previous one
+STAGED_PAIRS = "pairs.next.txt"
+
+
+def _map_round(conf: PipelineConfig, images_root: Path, out_dir: Path, work: Path, staged: Path,
+               num_added: int, progress: bool) -> None:
+    """Map a round's matches; when it gives a model, its database, `pairs.txt` and records replace
+    the previous ones just before the model does."""
+    db = out_dir / extract.DB_NAME
+
+    def commit() -> None:
+        match.commit(work, db)
+        _add_to_pairs_record(out_dir, num_added, file_digest(staged))
+        os.replace(staged, out_dir / PAIRS_NAME)
+
+    upstream = fingerprint(match.matches_digest(work))
+    mapping.run(conf.map, work, images_root, out_dir, seed=conf.seed, upstream_key=upstream, progress=progress,
+                min_num_inliers=conf.match.min_num_inliers, commit=commit)
+
+
+def _add_to_pairs_record(out_dir: Path, num_added: int, pairs_digest: dict[str, Any] | None) -> None:
     record = records.read_record(out_dir, PAIRS_STAGE) or {}
     info = record.get("info", {})
     info["num_added_after_mapping"] = info.get("num_added_after_mapping", 0) + num_added
     info["num_pairs"] = info.get("num_selected", info.get("num_pairs", 0)) + info["num_added_after_mapping"]
-    records.mark_done(out_dir, PAIRS_STAGE, record.get("key", ""), info)
+    outputs = {**record.get("outputs", {}), PAIRS_NAME: pairs_digest}
+    records.mark_done(out_dir, PAIRS_STAGE, record.get("key", ""), info, outputs=outputs)
+
+
+def recover(out_dir: Path) -> None:
+    """Finish or undo what a run killed between two swaps left (call it holding the lock): the
+    previous `sparse/` when the new one never arrived; a round's `pairs.txt` whose record was
+    already written."""
+    mapping.recover(out_dir)
+    staged = out_dir / ".sara" / STAGED_PAIRS
+    if staged.exists():
+        if records.recorded_outputs(out_dir, PAIRS_STAGE).get(PAIRS_NAME) == file_digest(staged):
+            os.replace(staged, out_dir / PAIRS_NAME)
+        else:
+            staged.unlink()
 
 
 # ---------------------------------------------------------------------------------------------
@@ -221,18 +402,39 @@ def run(conf: PipelineConfig, images_root: Path, out_dir: Path, *, gt_dir: Path 
     if stop_after not in (None, "extract", "pairs"):
         raise ValueError(f"stop_after must be extract or pairs, not {stop_after!r}")
     out_dir, images_root = Path(out_dir), Path(images_root)
-    if gt_dir is not None and not Path(gt_dir).exists():
-        raise FileNotFoundError(f"ground-truth folder not found: {gt_dir}")
-    pair_source_file(conf.pairs.method)  # a bad --pairs fails before any work
+    preflight(conf)  # a bad option or --pairs fails before any work
+    if gt_dir is not None:
+        _check_ground_truth(Path(gt_dir), images_root)
     images = scan_images(images_root, recursive=conf.images.recursive, progress=progress)
-    out_dir.mkdir(parents=True, exist_ok=True)
+    if stop_after != "extract" and len(images.names) < 2:
+        raise ValueError(f"only one usable image in {images_root} ({images.names[0]}): a reconstruction needs "
+                         "at least 2")
+    if gt_dir is not None:
+        _check_ground_truth(Path(gt_dir), images_root, images.names)
+    prepare_output_dir(out_dir)
     executor = make_executor(conf.execute.executor, conf.execute.workers, conf.execute.ray_address)
     try:
-        with OutputLock(out_dir):
+        with OutputLock(out_dir, clean=True):
+            recover(out_dir)
             return _run_stages(conf, images, images_root, out_dir, executor, gt_dir=gt_dir, overwrite=overwrite,
                                progress=progress, verbose_colmap=verbose_colmap, stop_after=stop_after)
     finally:
         executor.close()
+
+
+def _check_ground_truth(gt_dir: Path, images_root: Path, names: list[str] | None = None) -> None:
+    """A ground truth that does not exist, holds no model, or shares no image name with the images
+    fails before any work."""
+    if not gt_dir.exists():
+        raise FileNotFoundError(f"ground-truth folder not found: {gt_dir}")
+    if names is None:
+        return
+    from .evaluation import gt_image_names
+
+    common = gt_image_names(gt_dir) & set(names)
+    if not common:
+        raise ValueError(f"the ground truth {gt_dir} shares no image name with {images_root}: is it the ground "
+                         "truth of another scene?")
 
 
 def _run_stages(conf: PipelineConfig, images: ImageSet, images_root: Path, out_dir: Path, executor: Executor, *,
@@ -241,23 +443,30 @@ def _run_stages(conf: PipelineConfig, images: ImageSet, images_root: Path, out_d
     images = _handle_orientation(conf.images.exif_orientation, images, out_dir, progress)
     colmap.send_log_to(out_dir / "logs", verbose=verbose_colmap)
     colmap.set_seed(conf.seed)
-    report = RunReport(out_dir, images_root, conf.to_dict(), skipped_images=images.skipped)
-    report.stages["images"] = {"num_images": len(images.names), "num_skipped": len(images.skipped)}
+    first_run = not (out_dir / "run.json").exists()
     tic = time.perf_counter()
     features = extract.run(conf.extract, images, out_dir, executor=executor, overwrite=overwrite, progress=progress)
+    images = extract.usable(images, out_dir)
+    report = RunReport(out_dir, images_root, conf.to_dict(), skipped_images=images.skipped)
+    report.stages["images"] = {"num_images": len(images.names), "num_skipped": len(images.skipped)}
     report.stages["extract"] = {**records.done_info(out_dir, extract.STAGE), "time_s": time.perf_counter() - tic}
-    report.save()
+    if first_run or stop_after == "extract":
+        report.save()  # `sara map OUT` finds the images through run.json
     if stop_after == "extract":
         return report
     pairs_path = select_pairs(conf, images, features, out_dir, executor=executor, progress=progress)
     report.stages["pairs"] = records.done_info(out_dir, PAIRS_STAGE)
-    report.save()
     if stop_after == "pairs":
+        report.save()
         return report
-    match_pairs(conf, pairs_path, features, out_dir, executor=executor, progress=progress)
+    work = match_pairs(conf, pairs_path, features, out_dir, executor=executor, progress=progress, beside=True)
     report.stages["match"] = records.done_info(out_dir, match.STAGE)
-    report.save()
-    map_model(conf, images.root, out_dir, progress=progress)
+    try:
+        map_model(conf, images.root, out_dir, db_path=work, progress=progress)
+    except NoResultError:
+        if work != out_dir / extract.DB_NAME:
+            colmap.remove_database(work)  # the previous matches stay with the previous model
+        raise
     report.stages["map"] = records.done_info(out_dir, mapping.STAGE)
     _collect_after_mapping(report, after_mapping_rounds(conf, images, features, out_dir, executor=executor,
                                                         progress=progress))
@@ -317,25 +526,63 @@ def _require_database(out_dir: Path, hint: str) -> Path:
     return db
 
 
+def _require_finished(out_dir: Path, stage: str, command: str) -> dict[str, Any]:
+    record = records.read_record(out_dir, stage)
+    if record is None or record.get("done") is not True:
+        state = "never ran" if record is None else "did not finish (stopped or killed)"
+        raise IncompleteStageError(f"the {stage} stage in {out_dir} {state}: run `{command}` first")
+    return record
+
+
 def match_only(conf: PipelineConfig, out_dir: Path, pairs_path: Path | None = None, *, progress: bool = True,
                verbose_colmap: bool = False) -> dict[str, Any]:
     """`sara match OUT`: match a pairs file (default OUT/pairs.txt) into OUT's database."""
     out_dir = Path(out_dir)
-    _require_database(out_dir, f"run `sara extract IMAGES {out_dir}` first")
-    features = out_dir / features_file_name(conf.extract)
-    with OutputLock(out_dir):
+    db = _require_database(out_dir, f"run `sara extract IMAGES {out_dir}` first")
+    pairs_path = Path(pairs_path or out_dir / PAIRS_NAME)
+    if pairs_path.is_dir():
+        raise IsADirectoryError(f"--pairs {pairs_path}: a folder, not a pairs file ('name0 name1' per line)")
+    preflight(dataclasses.replace(conf, pairs=dataclasses.replace(conf.pairs, method="exhaustive")))
+    with OutputLock(out_dir, clean=True):
+        recover(out_dir)
+        record = _require_finished(out_dir, extract.STAGE, f"sara extract IMAGES {out_dir}")
+        backend = record.get("info", {}).get("backend", conf.extract.backend)
+        if backend != conf.extract.backend:
+            raise ValueError(f"{out_dir} holds {backend} features, not {conf.extract.backend}: give the options of "
+                             "the extraction (--preset, -s extract.backend=...)")
+        if pairs_path == out_dir / PAIRS_NAME and records.read_record(out_dir, PAIRS_STAGE) is not None:
+            _pairs_intact(out_dir)  # a changed pairs.txt of the pairs stage is not matched silently
         colmap.send_log_to(out_dir / "logs", verbose=verbose_colmap)
-        match_pairs(conf, Path(pairs_path or out_dir / PAIRS_NAME), features, out_dir, progress=progress)
+        features = out_dir / features_file_name(conf.extract)
+        work = match_pairs(conf, pairs_path, features, out_dir, progress=progress, beside=True)
+        match.commit(work, db)
     return records.done_info(out_dir, match.STAGE)
 
 
 def map_only(conf: PipelineConfig, out_dir: Path, images_root: Path | None = None, *, progress: bool = True,
              verbose_colmap: bool = False) -> dict[str, Any]:
-    """`sara map OUT`: map OUT's database into OUT/sparse (images: the folder recorded in run.json)."""
+    """`sara map OUT`: map OUT's database into OUT/sparse (images: the folder recorded in run.json).
+
+    Refuses when the match stage did not finish, or when the database no longer holds the matches
+    it recorded: an unfinished match is never mapped as if it were complete.
+    """
     out_dir = Path(out_dir)
-    _require_database(out_dir, "run `sara extract` and `sara match` first")
+    db = _require_database(out_dir, "run `sara extract` and `sara match` first")
     images_root = Path(images_root or load_run(out_dir)["images_root"])
-    with OutputLock(out_dir):
+    if not images_root.is_dir():
+        raise FileNotFoundError(f"image folder {images_root} not found: give it with --images")
+    preflight(dataclasses.replace(conf, pairs=dataclasses.replace(conf.pairs, method="exhaustive")))
+    with OutputLock(out_dir, clean=True):
+        recover(out_dir)
+        record = _require_finished(out_dir, match.STAGE, f"sara match {out_dir}")
+        try:
+            now = match.matches_digest(db)
+        except DamagedOutputError as exc:
+            raise DamagedOutputError(f"{exc}; run `sara run` again with --overwrite to redo it") from None
+        recorded = record.get("outputs", {}).get(match.DB_NAME)
+        if recorded is not None and recorded != now:
+            raise IncompleteStageError(f"{db} no longer holds the matches of the last match stage (changed, or a "
+                                       f"run stopped before it finished): run `sara match {out_dir}` first")
         colmap.send_log_to(out_dir / "logs", verbose=verbose_colmap)
         map_model(conf, images_root, out_dir, progress=progress)
     return records.done_info(out_dir, mapping.STAGE)
@@ -361,9 +608,10 @@ def share_features(features_dir: Path, out_dir: Path) -> bool:
         return False
     shutil.rmtree(out_dir / ".sara", ignore_errors=True)
     out_dir.mkdir(parents=True, exist_ok=True)
+    colmap.remove_database(out_dir / extract.DB_NAME)
     colmap.copy_database(features_dir / extract.DB_NAME, out_dir / extract.DB_NAME)
     _link_or_copy(features_dir / features_name, out_dir / features_name)
-    records.mark_done(out_dir, extract.STAGE, source["key"], source.get("info", {}))
+    records.mark_done(out_dir, extract.STAGE, source["key"], source.get("info", {}), outputs=source.get("outputs"))
     return True
 
 

@@ -8,14 +8,141 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import os
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+import PIL.Image  # noqa: F401 - before pycolmap: its bundled zlib otherwise breaks Pillow's PNG writer (heap corruption)
 import pycolmap
 
+from ..io import DamagedOutputError, LOW_SPACE_BYTES, disk_full_error, fingerprint, free_bytes
+
 logger = logging.getLogger(__name__)
+
+
+class ColmapError(RuntimeError):
+    """COLMAP failed for a reason that is not a full disk or a damaged database (see its log)."""
+
+
+@contextlib.contextmanager
+def native_errors(what: str, folder: Path) -> Iterator[None]:
+    """Turn pycolmap's RuntimeError into an error that says what happened: OSError(ENOSPC) when the
+    disk of `folder` is (nearly) full, else ColmapError naming `what` and COLMAP's log."""
+    try:
+        yield
+    except RuntimeError as exc:
+        if isinstance(exc, ColmapError):
+            raise
+        if free_bytes(folder) < LOW_SPACE_BYTES:
+            raise disk_full_error(folder) from None
+        detail = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise ColmapError(f"COLMAP could not {what} ({detail}); its log is in {Path(folder) / 'logs'}") from None
+
+
+# ---------------------------------------------------------------------------------------------
+# Cheap checks: can COLMAP's reader decode an image, what does a database hold
+# ---------------------------------------------------------------------------------------------
+
+
+def image_read_problem(path: Path) -> str | None:
+    """Why COLMAP's image reader (the one its SIFT extraction uses) cannot decode a file, or None."""
+    try:
+        bitmap = pycolmap.Bitmap.read(str(path), as_rgb=False)
+    except (RuntimeError, ValueError, OSError) as exc:
+        return f"COLMAP's image reader fails on it ({exc})"
+    if bitmap is None or bitmap.width <= 0 or bitmap.height <= 0:
+        return "COLMAP's image reader cannot decode it (a format COLMAP does not read, whatever its extension)"
+    return None
+
+
+_DB_TABLES = ("images", "keypoints", "descriptors", "matches", "two_view_geometries")
+
+
+def _sqlite_header_problem(path: Path) -> str | None:
+    """A database file shorter than its header says: truncated (None when it looks whole)."""
+    import struct
+
+    with open(path, "rb") as f:
+        header = f.read(100)
+    if len(header) < 100 or not header.startswith(b"SQLite format 3\x00"):
+        return "not an SQLite database" if header else "empty file"
+    page_size = struct.unpack(">H", header[16:18])[0]
+    page_size = 65536 if page_size == 1 else page_size
+    num_pages = struct.unpack(">I", header[28:32])[0]
+    if header[92:96] == header[24:28] and path.stat().st_size < page_size * num_pages:
+        return f"truncated: {path.stat().st_size} of {page_size * num_pages} bytes"
+    return None
+
+
+def database_summary(db_path: Path) -> dict[str, Any] | None:
+    """Counts and digests of a COLMAP database, read with SQLite alone (cheap; None when absent).
+
+    num_images, num_images_with_keypoints, keypoints_digest (names and keypoint counts),
+    num_matched_pairs, num_verified_pairs (two-view geometries with inliers), matches_digest
+    (every pair's match and inlier counts and geometry type). Raises DamagedOutputError when the
+    file is truncated or SQLite finds it malformed.
+    """
+    import sqlite3
+
+    db_path = Path(db_path)
+    if not db_path.is_file():
+        return None
+    problem = _sqlite_header_problem(db_path)
+    if problem is not None:
+        raise DamagedOutputError(f"{db_path} is damaged ({problem})")
+    try:
+        con = sqlite3.connect(f"file:{db_path}?mode=ro", uri=True)
+        try:
+            tables = {r[0] for r in con.execute("SELECT name FROM sqlite_master WHERE type='table'")}
+            missing = [t for t in _DB_TABLES if t not in tables]
+            if missing:
+                raise DamagedOutputError(f"{db_path} is not a COLMAP database (no table {missing[0]})")
+            images = con.execute("SELECT image_id, name FROM images ORDER BY image_id").fetchall()
+            keypoints = con.execute("SELECT image_id, rows FROM keypoints ORDER BY image_id").fetchall()
+            matches = con.execute("SELECT pair_id, rows FROM matches ORDER BY pair_id").fetchall()
+            geometries = con.execute("SELECT pair_id, rows, config FROM two_view_geometries ORDER BY pair_id").fetchall()
+        finally:
+            con.close()
+    except sqlite3.DatabaseError as exc:
+        raise DamagedOutputError(f"{db_path} is damaged ({exc})") from None
+    names = dict(images)
+    return {
+        "num_images": len(images),
+        "num_images_with_keypoints": sum(1 for _, rows in keypoints if rows > 0),
+        "keypoints_digest": fingerprint([(names.get(i, str(i)), rows) for i, rows in keypoints]),
+        "num_matched_pairs": sum(1 for _, rows in matches if rows > 0),
+        "num_verified_pairs": sum(1 for _, rows, _ in geometries if rows > 0),
+        "matches_digest": fingerprint([matches, geometries]),
+    }
+
+
+def verified_graph(db_path: Path, min_num_inliers: int) -> tuple[int, int, list[int]]:
+    """(pairs with at least `min_num_inliers` verified matches, images they touch, the sizes of the
+    connected groups of images they form, largest first): why a mapper may find no model."""
+    import sqlite3
+
+    con = sqlite3.connect(f"file:{Path(db_path)}?mode=ro", uri=True)
+    try:
+        rows = con.execute("SELECT pair_id FROM two_view_geometries WHERE rows >= ?", (int(min_num_inliers),)).fetchall()
+    finally:
+        con.close()
+    parent: dict[int, int] = {}
+
+    def find(i: int) -> int:
+        while parent.setdefault(i, i) != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    for (pair_id,) in rows:
+        i, j = pycolmap.pair_id_to_image_pair(int(pair_id))
+        parent[find(int(i))] = find(int(j))
+    groups: dict[int, int] = {}
+    for i in list(parent):
+        groups[find(i)] = groups.get(find(i), 0) + 1
+    return len(rows), len(parent), sorted(groups.values(), reverse=True)
 
 _CAMERA_MODES = {
     "single": pycolmap.CameraMode.SINGLE,
@@ -66,7 +193,8 @@ def set_seed(seed: int) -> None:
 
 @contextlib.contextmanager
 def open_database(path: Path) -> Iterator[pycolmap.Database]:
-    db = pycolmap.Database.open(str(path))
+    with native_errors(f"open the database {path}", Path(path).parent):
+        db = pycolmap.Database.open(str(path))
     try:
         yield db
     finally:
@@ -89,8 +217,35 @@ def copy_database(src: Path, dst: Path) -> None:
             source.close()
 
 
+def remove_database(path: Path) -> None:
+    """Delete a database with its SQLite write-ahead log and index (`-wal`, `-shm`): a log left by
+    a killed run must never be replayed onto a newer file of the same name."""
+    for suffix in ("", "-wal", "-shm", "-journal"):
+        Path(f"{path}{suffix}").unlink(missing_ok=True)
+
+
+def replace_database(src: Path, dst: Path) -> None:
+    """Move a finished database (closed, so its log is merged) onto `dst`, dropping `dst`'s log."""
+    for suffix in ("-wal", "-shm", "-journal"):
+        Path(f"{dst}{suffix}").unlink(missing_ok=True)
+    os.replace(src, dst)
+
+
+def quiet_signals_in_worker() -> None:
+    """In a worker process of ours: SIGTERM ends it silently (instead of the stack dump of
+    pycolmap's native handler) and SIGINT is left to the driver, which stops the pool."""
+    import multiprocessing
+    import signal
+
+    if multiprocessing.parent_process() is None:
+        return
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
 def create_database(path: Path) -> None:
-    pycolmap.Database.open(str(path)).close()
+    with native_errors(f"create the database {path}", Path(path).parent):
+        pycolmap.Database.open(str(path)).close()
 
 
 def import_images(db_path: Path, image_dir: Path, names: list[str], *, camera_mode: str, camera_model: str,
@@ -100,9 +255,10 @@ def import_images(db_path: Path, image_dir: Path, names: list[str], *, camera_mo
     opts.camera_model = camera_model
     opts.camera_params = camera_params
     opts.default_focal_length_factor = default_focal_length_factor
-    pycolmap.import_images(
-        str(db_path), str(image_dir), camera_mode=_CAMERA_MODES[camera_mode], image_names=names, options=opts
-    )
+    with native_errors("import the images into the database", Path(db_path).parent):
+        pycolmap.import_images(
+            str(db_path), str(image_dir), camera_mode=_CAMERA_MODES[camera_mode], image_names=names, options=opts
+        )
 
 
 def extract_sift(db_path: Path, image_dir: Path, names: list[str], *, max_image_size: int, max_num_features: int,
@@ -115,10 +271,11 @@ def extract_sift(db_path: Path, image_dir: Path, names: list[str], *, max_image_
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = camera_model
     reader.camera_params = camera_params
-    pycolmap.extract_features(
-        str(db_path), str(image_dir), image_names=names, reader_options=reader,
-        extraction_options=opts, device=pycolmap.Device.cpu,
-    )
+    with native_errors("extract SIFT features", Path(db_path).parent):
+        pycolmap.extract_features(
+            str(db_path), str(image_dir), image_names=names, reader_options=reader,
+            extraction_options=opts, device=pycolmap.Device.cpu,
+        )
 
 
 def sift_of_image(image: np.ndarray, *, max_num_features: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -187,11 +344,12 @@ def match_pairs(db_path: Path, pairs_path: Path, *, max_ratio: float, max_distan
     mopts.sift.cross_check = cross_check
     vopts = pycolmap.TwoViewGeometryOptions()
     vopts.min_num_inliers = min_num_inliers
-    pycolmap.match_image_pairs(
-        str(db_path), matching_options=mopts,
-        pairing_options=pycolmap.ImportedPairingOptions(match_list_path=str(pairs_path)),
-        verification_options=vopts, device=pycolmap.Device.cpu,
-    )
+    with native_errors("match the pairs", Path(db_path).parent):
+        pycolmap.match_image_pairs(
+            str(db_path), matching_options=mopts,
+            pairing_options=pycolmap.ImportedPairingOptions(match_list_path=str(pairs_path)),
+            verification_options=vopts, device=pycolmap.Device.cpu,
+        )
 
 
 def write_matches(db_path: Path, matches: dict[tuple[str, str], np.ndarray]) -> None:
@@ -211,7 +369,8 @@ def verify_pairs(db_path: Path, pairs_path: Path, *, min_num_inliers: int) -> No
     """COLMAP's geometric verification of the stored matches of the pairs in a pairs file."""
     opts = pycolmap.TwoViewGeometryOptions()
     opts.min_num_inliers = min_num_inliers
-    pycolmap.verify_matches(str(db_path), str(pairs_path), options=opts)
+    with native_errors("verify the matches", Path(db_path).parent):
+        pycolmap.verify_matches(str(db_path), str(pairs_path), options=opts)
 
 
 def verified_image_pairs(db: pycolmap.Database) -> list[tuple[int, int, int]]:
@@ -237,10 +396,11 @@ def incremental_mapping(
     opts.random_seed = seed
     opts.mapper.random_seed = seed
     opts.triangulation.random_seed = seed
-    return pycolmap.incremental_mapping(
-        str(db_path), str(image_dir), str(out_dir), options=opts,
-        next_image_callback=on_next_image,
-    )
+    with native_errors("map the matches (incremental mapper)", Path(out_dir)):
+        return pycolmap.incremental_mapping(
+            str(db_path), str(image_dir), str(out_dir), options=opts,
+            next_image_callback=on_next_image,
+        )
 
 
 def global_mapping(db_path: Path, image_dir: Path, out_dir: Path, *, seed: int, num_threads: int = -1) -> dict:
@@ -249,7 +409,8 @@ def global_mapping(db_path: Path, image_dir: Path, out_dir: Path, *, seed: int, 
         opts.num_threads = num_threads
     with contextlib.suppress(AttributeError):
         opts.random_seed = seed
-    return pycolmap.global_mapping(str(db_path), str(image_dir), str(out_dir), options=opts)
+    with native_errors("map the matches (global mapper)", Path(out_dir)):
+        return pycolmap.global_mapping(str(db_path), str(image_dir), str(out_dir), options=opts)
 
 
 def read_model(path: Path) -> pycolmap.Reconstruction:
@@ -460,7 +621,8 @@ def write_models_by_size(folder: Path, recs: dict[int, pycolmap.Reconstruction])
     for new_index, (_, rec) in enumerate(order):
         dst = Path(folder) / str(new_index)
         dst.mkdir()
-        rec.write(str(dst))
+        with native_errors(f"write the model {dst}", Path(folder)):
+            rec.write(str(dst))
         sizes.append(int(rec.num_reg_images()))
     return sizes
 

@@ -57,8 +57,14 @@ def _read_components(model_dirs: Sequence[Path]) -> list[Any]:
     return recs
 
 
+def gt_image_names(gt_dir: Path) -> set[str]:
+    """Names of the posed images of a ground-truth model (FileNotFoundError when it holds none)."""
+    return set(colmap.load_poses(Path(gt_dir)))
+
+
 def evaluate_models(model_dirs: list[Path] | Path, gt_dir: Path, *,
-                    thresholds_deg: Sequence[float] = DEFAULT_THRESHOLDS_DEG) -> dict[str, Any]:
+                    thresholds_deg: Sequence[float] = DEFAULT_THRESHOLDS_DEG,
+                    require_model: bool = False) -> dict[str, Any]:
     """Evaluate the components of an estimated reconstruction against the ground truth.
 
     Args:
@@ -79,7 +85,10 @@ def evaluate_models(model_dirs: list[Path] | Path, gt_dir: Path, *,
         ``reproj_error_mean_px``, ``reproj_error_median_px``. Missing values are None.
 
     Raises:
-        FileNotFoundError: the ground-truth folder does not exist or holds no model.
+        FileNotFoundError: the ground-truth folder does not exist or holds no model; with
+            `require_model`, no estimated model with registered images could be read (else that
+            is scored as a failure).
+        ValueError: the estimate and the ground truth share no image name (another scene).
     """
     if isinstance(model_dirs, (str, os.PathLike)):
         model_dirs = [Path(model_dirs)]
@@ -87,8 +96,16 @@ def evaluate_models(model_dirs: list[Path] | Path, gt_dir: Path, *,
     metrics = failure_metrics(len(gt), thresholds_deg)
     recs = [rec for rec in _read_components(model_dirs) if colmap.num_registered(rec) > 0]
     if not recs:
+        if require_model:
+            where = ", ".join(str(d) for d in model_dirs) or "the given folder"
+            raise FileNotFoundError(f"no readable COLMAP model with registered images in {where}")
         logger.warning("No estimated model with registered images: scored as a failure")
         return metrics
+    names = set().union(*(colmap.poses_of(rec).keys() for rec in recs))
+    if not names & gt.keys():
+        raise ValueError(f"the model and the ground truth {gt_dir} share no image name (model: e.g. "
+                         f"{sorted(names)[0]!r}; ground truth: e.g. {sorted(gt)[0]!r}): is it the ground truth "
+                         "of another scene?")
     largest = max(recs, key=lambda rec: (colmap.num_registered(rec), colmap.model_structure(rec)[0]))
     est = colmap.poses_of(largest)
     registered_any = set().union(*(colmap.poses_of(rec).keys() for rec in recs)) & gt.keys()
@@ -137,17 +154,23 @@ def find_model_dirs(model_root: Path) -> list[Path]:
     return numbered + sorted(p for p in subdirs if not p.name.isdigit())
 
 
-def evaluate(model_root: Path, gt_dir: Path, out_path: Path | None = None) -> dict:
+def evaluate(model_root: Path, gt_dir: Path, out_path: Path | None = None, *,
+             require_model: bool = False) -> dict:
     """Evaluate every component under ``model_root`` against ``gt_dir``.
 
     Writes the metrics as JSON to ``out_path`` (atomically) when given, and returns them.
-    A missing ``model_root`` evaluates as a failed reconstruction.
+    A missing ``model_root`` evaluates as a failed reconstruction, or with ``require_model``
+    (`sara evaluate`) raises FileNotFoundError.
     """
     model_dirs = find_model_dirs(Path(model_root))
+    if require_model and not model_dirs:
+        state = "does not exist" if not Path(model_root).exists() else "holds no COLMAP model"
+        raise FileNotFoundError(f"{model_root} {state}: give a model folder (cameras, images, points3D), its "
+                                "sparse/ folder or a sara output folder")
     logger.debug(
         "Evaluating %d component(s) under %s against %s", len(model_dirs), model_root, gt_dir
     )
-    metrics = evaluate_models(model_dirs, Path(gt_dir))
+    metrics = evaluate_models(model_dirs, Path(gt_dir), require_model=require_model)
     if out_path is not None:
         write_json_atomic(Path(out_path), metrics)
         logger.debug("Wrote metrics to %s", out_path)

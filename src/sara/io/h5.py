@@ -12,9 +12,15 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import h5py
 import numpy as np
+
+from . import DamagedOutputError, atomic_path, ensure_free_space, fingerprint
+
+#: what h5py raises on a damaged file: OSError (truncated), RuntimeError (bad node), KeyError, ValueError
+H5_ERRORS = (OSError, RuntimeError, KeyError, ValueError)
 
 
 @dataclass
@@ -114,6 +120,29 @@ def list_names(path: Path) -> list[str]:
         return groups_holding(h5, "keypoints")
 
 
+def features_digest(path: Path) -> dict[str, Any] | None:
+    """What identifies a features file cheaply: its size, its image names and each one's keypoint
+    and descriptor counts (None when the file does not exist).
+
+    Raises DamagedOutputError when HDF5 cannot read it (truncated, overwritten, half written).
+    """
+    path = Path(path)
+    if not path.is_file():
+        return None
+    try:
+        with h5py.File(path, "r") as h5:
+            names = groups_holding(h5, "keypoints")
+            counts = [(n, int(h5[n]["keypoints"].shape[0]), int(h5[n]["descriptors"].shape[-1])) for n in names]
+    except H5_ERRORS as exc:
+        raise DamagedOutputError(f"{path} is damaged ({_first_line(exc)})") from None
+    return {"size": path.stat().st_size, "num_images": len(names),
+            "num_keypoints": sum(c[1] for c in counts), "digest": fingerprint(counts)}
+
+
+def _first_line(exc: BaseException) -> str:
+    return str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+
+
 # ---------------------------------------------------------------------------------------------
 # Global descriptors, hloc's layout: one group per image holding `global_descriptor` (D,)
 # ---------------------------------------------------------------------------------------------
@@ -121,9 +150,8 @@ def list_names(path: Path) -> list[str]:
 
 def write_global(path: Path, names: list[str], desc: np.ndarray, attrs: dict[str, str]) -> None:
     """Write global descriptors atomically: one group per name, root attributes `attrs`."""
-    from . import atomic_path
-
     desc = np.asarray(desc, dtype=np.float32)
+    ensure_free_space(Path(path).parent, 2 * desc.nbytes + 4096 * len(names))  # HDF5 crashes on a full disk
     with atomic_path(path) as tmp:
         with h5py.File(tmp, "w") as h5:
             for name, row in zip(names, desc):

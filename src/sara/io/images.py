@@ -9,6 +9,8 @@ from pathlib import Path
 
 from tqdm import tqdm
 
+from .pairs import name_problem
+
 logger = logging.getLogger(__name__)
 
 IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".pgm", ".ppm")
@@ -40,7 +42,11 @@ class ImageSet:
 
 
 def list_image_files(root: Path, *, recursive: bool = False) -> list[str]:
-    """Names (relative, POSIX) of files with an image extension under `root`, sorted."""
+    """Names (relative, POSIX) of files with an image extension under `root`, sorted.
+
+    Hidden files (a name starting with '.') are listed too, so that the scan can say it skips
+    them; hidden folders are not entered.
+    """
     root = Path(root)
     if not root.exists():
         raise FileNotFoundError(f"image folder not found: {root}")
@@ -51,13 +57,16 @@ def list_image_files(root: Path, *, recursive: bool = False) -> list[str]:
         for dirpath, dirnames, filenames in os.walk(root):
             dirnames[:] = sorted(d for d in dirnames if not d.startswith("."))
             for fname in filenames:
-                if fname.lower().endswith(IMAGE_EXTENSIONS) and not fname.startswith("."):
+                if fname.lower().endswith(IMAGE_EXTENSIONS):
                     names.append((Path(dirpath) / fname).relative_to(root).as_posix())
     else:
         for entry in root.iterdir():
-            if entry.is_file() and entry.suffix.lower() in IMAGE_EXTENSIONS and not entry.name.startswith("."):
+            if entry.suffix.lower() in IMAGE_EXTENSIONS and entry.is_file():
                 names.append(entry.name)
     return sorted(names)
+
+
+HIDDEN_REASON = "hidden file (its name starts with '.'); rename it to use it"
 
 
 def check_image(path: Path) -> tuple[tuple[int, int] | None, str | None, int]:
@@ -88,10 +97,29 @@ def check_image(path: Path) -> tuple[tuple[int, int] | None, str | None, int]:
     return size, None, orientation if 1 <= orientation <= 8 else 1
 
 
+def display_name(name: str) -> str:
+    """A name as it can be printed and stored in UTF-8 files: bytes that are not UTF-8 as `\\xNN`."""
+    return name.encode("utf-8", "surrogateescape").decode("utf-8", "backslashreplace")
+
+
+def set_aside(images: ImageSet, reasons: dict[str, str]) -> ImageSet:
+    """The set without the images of `reasons` (name -> why), each skipped with one warning."""
+    if not reasons:
+        return images
+    for name, reason in reasons.items():
+        logger.warning("skipping %s: %s", display_name(name), reason)
+    skipped = {**images.skipped, **{display_name(n): r for n, r in reasons.items()}}
+    return ImageSet(root=images.root, names=[n for n in images.names if n not in reasons],
+                    sizes={n: s for n, s in images.sizes.items() if n not in reasons}, skipped=skipped,
+                    orientation={n: o for n, o in images.orientation.items() if n not in reasons})
+
+
 def scan_images(root: Path, *, recursive: bool = False, progress: bool = True) -> ImageSet:
     """List and check the images of a folder; unusable ones are skipped with one warning each.
 
-    Raises ValueError when no usable image is left.
+    An image is skipped when its name cannot go through sara's files (see `sara.io.pairs.name_problem`:
+    control characters, bytes that are not UTF-8) or when Pillow cannot decode it. Raises ValueError
+    when no usable image is left.
     """
     root = Path(root)
     candidates = list_image_files(root, recursive=recursive)
@@ -100,10 +128,13 @@ def scan_images(root: Path, *, recursive: bool = False, progress: bool = True) -
         raise ValueError(f"no images found in {root}; looked for {', '.join(IMAGE_EXTENSIONS)}{hint}")
     names, sizes, skipped, orientation = [], {}, {}, {}
     for name in tqdm(candidates, desc="check images", unit="img", disable=not progress):
-        size, reason, orient = check_image(root / name)
+        reason = HIDDEN_REASON if Path(name).name.startswith(".") else name_problem(name)
+        size, orient = None, 1
+        if reason is None:
+            size, reason, orient = check_image(root / name)
         if reason is not None:
-            logger.warning("skipping %s: %s", name, reason)
-            skipped[name] = reason
+            logger.warning("skipping %s: %s", display_name(name), reason)
+            skipped[display_name(name)] = reason
             continue
         names.append(name)
         sizes[name] = size
