@@ -95,9 +95,11 @@ class PairsConfig:
     vocab_tree_path: str = ""  # a saved pycolmap visual index; built from this collection when empty
     vocab_num_images: int = 30  # top-k of the vocabulary tree retrieval
     vocab_num_words: int = 4096
-    # SARA only: when the model splits although the selected graph is connected, match up to
-    # repair_pairs_per_view more candidates per left-out view and map again (0 rounds: never)
-    repair_rounds: int = 1
+    # SARA only: rounds after the first model (0: none). A round repairs views that the model left
+    # out although the selected graph joins them (up to repair_pairs_per_view more candidates per
+    # left-out view), else runs the pose-guided round once (graph.pose_guided_*); 3 leaves room for
+    # a repair before and after the pose-guided round
+    repair_rounds: int = 3
     repair_pairs_per_view: int = 3
 
     def __post_init__(self) -> None:
@@ -188,6 +190,41 @@ class GraphConfig:
     (0-1) of all views' medians is weak too; 0 disables this criterion."""
     weak_per_view: int = 1
     """Most pairs added per weak view (pairs)."""
+
+    pose_guided_pairs_per_image: float = 1.0
+    """Pairs per registered image that SARA's pose-guided round adds after the first model
+    (pairs / image; 0 disables the round): the unmatched pairs whose predicted covisible points
+    are least tied through other pairs yet (docs/ACCURACY.md)."""
+    pose_guided_min_points: int = 30
+    """A pair is matched in the pose-guided round only if the first model predicts at least this
+    many covisible points (points); fewer rarely pass verification (15 inliers)."""
+    pose_guided_max_view_angle_deg: float = 45.0
+    """A point counts as covisible only if the two views see it from directions at most this far
+    apart (degrees): SIFT seldom matches across wider angles."""
+    max_pairs_per_image: float = 4.0
+    """Cap on the pairs of all rounds together (selection, repair, pose-guided), per image."""
+    max_pairs_fraction: float = 0.25
+    """Cap on the pairs of all rounds together, as a fraction of the exhaustive N (N - 1) / 2; on
+    small collections it bounds the selection (the spanning tree is always kept)."""
+    densify: bool = False
+    """More 3D points (3DGS initialisation): the pose-guided round ranks pairs by all predicted
+    covisible points, with its own budget and cap (`densify_pairs_per_image`)."""
+    densify_pairs_per_image: float = 4.0
+    """With `densify`: pose-guided pairs per registered image (pairs / image); the cap of all
+    rounds is then ``densify_pairs_per_image + 2`` pairs per image and half the exhaustive pairs."""
+
+    def pair_cap(self, num_images: int) -> int:
+        """Most pairs of all rounds together for ``num_images`` images (at least a spanning tree)."""
+        exhaustive = num_images * (num_images - 1) // 2
+        cap = min(math.floor(self.max_pairs_per_image * num_images + 1e-9),
+                  math.floor(self.max_pairs_fraction * exhaustive + 1e-9))
+        return max(cap, num_images - 1)
+
+    def densify_cap(self, num_images: int) -> int:
+        """Most pairs of all rounds together with `densify`."""
+        exhaustive = num_images * (num_images - 1) // 2
+        return max(min(math.floor((self.densify_pairs_per_image + 2) * num_images + 1e-9), exhaustive // 2),
+                   num_images - 1)
 
     def __post_init__(self) -> None:
         validate(self)
@@ -412,6 +449,13 @@ RULES: dict[str, tuple[Any, str]] = {
     "graph.weak_degree": _ints(0),
     "graph.weak_quantile": _reals(0, 1),
     "graph.weak_per_view": _ints(1),
+    "graph.pose_guided_pairs_per_image": _reals(0),
+    "graph.pose_guided_min_points": _ints(1),
+    "graph.pose_guided_max_view_angle_deg": _reals(0, 180, low_open=True),
+    "graph.max_pairs_per_image": _reals(0),
+    "graph.max_pairs_fraction": _reals(0, 1),
+    "graph.densify": _flag(),
+    "graph.densify_pairs_per_image": _reals(0),
     "execute.executor": _choice("auto", "serial", "processes", "ray"),
     "execute.workers": _ints(0),
     "execute.ray_address": _text(),

@@ -18,8 +18,8 @@ import numpy as np
 
 from .. import colmap, retrieval, scoring, selection
 from ..io.pairs import Pair
-from ..io.scores import write_scores_csv
-from . import PairContext, PairResult
+from ..io.scores import read_scores_csv, write_scores_csv
+from . import PairContext, PairResult, pose_guided
 from .repair import left_out_views, repair_pairs
 
 logger = logging.getLogger(__name__)
@@ -45,7 +45,8 @@ def select(ctx: PairContext) -> PairResult:
     timings["scoring"] = time.perf_counter() - tic
 
     tic = time.perf_counter()
-    chosen_graph = selection.select_pairs(len(names), edges, scores.weight, scores.parallax_deg, scores.accepted, conf.graph)
+    chosen_graph = selection.select_pairs(len(names), edges, scores.weight, scores.parallax_deg, scores.accepted,
+                                          conf.graph, max_pairs=selection.first_round_cap(len(names), conf.graph))
     roles = list(chosen_graph.role)
     rescued = rescue_low_parallax(len(names), edges, roles, scores)
     timings["graph"] = time.perf_counter() - tic
@@ -69,17 +70,53 @@ def select(ctx: PairContext) -> PairResult:
 
 
 def after_mapping(ctx: PairContext, pairs: list[Pair], model_dir: Path) -> list[Pair]:
-    """Re-link views that the mapper left out of the main model although the selected graph joins
-    them to it: their best unselected candidates into the main model (see `repair.py`)."""
+    """More pairs once a model exists, within the cap of all rounds (`GraphConfig.pair_cap`):
+
+    1. views that the mapper left out of the main model although the selected graph joins them to
+       it: their best unselected candidates into the main model (`repair.py`);
+    2. otherwise, once: the pose-guided round (`pose_guided.py`), the unmatched pairs of registered
+       views that the model predicts to add the most observations.
+    """
     main = colmap.registered_images(model_dir)
     left_out = left_out_views(ctx.names, pairs, main)
-    if not left_out:
+    if left_out:
+        extra = repair_pairs(ctx.out_dir / SCORES_NAME, pairs, main, left_out, ctx.conf.pairs.repair_pairs_per_view)
+        room = max(ctx.conf.graph.pair_cap(len(ctx.names)) - len(pairs), len(left_out))
+        extra = extra[:room] if len(extra) > room else extra
+        if extra:
+            logger.warning("%d views were left out of the main model: matching %d more pairs and mapping again",
+                           len(left_out), len(extra))
+        return extra
+    return pose_guided_round(ctx, pairs, model_dir)
+
+
+def pose_guided_round(ctx: PairContext, pairs: list[Pair], model_dir: Path) -> list[Pair]:
+    """The pose-guided pairs (once per selection; [] when done, disabled or nothing is worth it)."""
+    graph = ctx.conf.graph
+    if (graph.pose_guided_pairs_per_image <= 0 and not graph.densify) or not colmap.has_model(model_dir):
         return []
-    extra = repair_pairs(ctx.out_dir / SCORES_NAME, pairs, main, left_out, ctx.conf.pairs.repair_pairs_per_view)
+    key = pose_guided.selection_key(_first_round(ctx.out_dir / SCORES_NAME), graph)
+    done = pose_guided.recorded_pairs(ctx.out_dir, key)
+    if done is not None:  # chosen before: [] once matched, the same pairs again after an interruption
+        matched = {tuple(sorted(p)) for p in pairs}
+        return [] if all(p in matched for p in done) else done
+    extra, info = pose_guided.select_extra(ctx, pairs, model_dir)
+    pose_guided.mark_chosen(ctx.out_dir, key, extra, info)
     if extra:
-        logger.warning("%d views were left out of the main model: matching %d more pairs and mapping again",
-                       len(left_out), len(extra))
+        logger.info("pose-guided round: matching %d more pairs (predicted covisible points, median %.0f)",
+                    len(extra), info.get("predicted_covisible_median", 0.0))
     return extra
+
+
+def _first_round(scores_csv: Path) -> list[Pair]:
+    scores, roles = read_scores_csv(scores_csv)
+    roles = roles or [""] * len(scores)
+    return [(a, b) for a, b, r in zip(scores.name0, scores.name1, roles)
+            if r in selection.SELECTED_ROLES or r == "rescue"]
+
+
+#: the pipeline may refine the model after the pose-guided round instead of mapping again
+after_mapping.refine = pose_guided.refine  # type: ignore[attr-defined]
 
 
 def rescue_low_parallax(num_images: int, edges: np.ndarray, roles: list[str], scores: scoring.PairScores) -> int:

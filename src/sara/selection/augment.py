@@ -244,6 +244,21 @@ class Selection:
         }
 
 
+def first_round_cap(num_images: int, conf: GraphConfig) -> int:
+    """Most pairs of the first round: the cap of all rounds (`GraphConfig.pair_cap`) less what the
+    pose-guided round after mapping keeps for itself (the spanning forest is kept regardless)."""
+    reserve = math.ceil(conf.pose_guided_pairs_per_image * num_images - 1e-9)
+    return max(0, conf.pair_cap(num_images) - reserve)
+
+
+def capped_budgets(budgets: dict[str, int], room: int) -> dict[str, int]:
+    """The augmentation budgets scaled down (floor, in proportion) so that they sum to at most `room`."""
+    total = sum(budgets.values())
+    if total <= room:
+        return dict(budgets)
+    return {k: (v * room) // total for k, v in budgets.items()}
+
+
 def _warn_if_disconnected(components: np.ndarray) -> None:
     sizes = np.bincount(components)
     if len(sizes) <= 1:
@@ -263,6 +278,8 @@ def select_pairs(
     parallax_deg: np.ndarray,
     accepted: np.ndarray,
     conf: GraphConfig | None = None,
+    *,
+    max_pairs: int | None = None,
 ) -> Selection:
     """Choose the pairs to match: spanning forest, then loops, anchors and weak views.
 
@@ -273,6 +290,8 @@ def select_pairs(
         parallax_deg: (E,) float64 parallax, degrees; finite for accepted pairs.
         accepted: (E,) bool; rejected pairs are never selected.
         conf: budgets and thresholds; defaults to ``GraphConfig()``.
+        max_pairs: at most this many pairs in all (the augmentation budgets shrink in proportion;
+            the spanning forest is always kept); None: no cap. See `first_round_cap`.
     Returns:
         A :class:`Selection`; the same input always gives the same output.
     """
@@ -299,6 +318,8 @@ def select_pairs(
     role[tree] = "tree"
 
     budgets = conf.budgets(num_images)
+    if max_pairs is not None:
+        budgets = capped_budgets(budgets, max(0, max_pairs - len(tree)))
     if budgets["loop"] > 0:
         forest = RootedForest.from_edges(num_images, edges[tree])
         _add_loops(role, edges, weight, forest, budgets["loop"], conf)

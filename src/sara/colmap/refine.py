@@ -1,0 +1,114 @@
+"""Reading a finished model's geometry as arrays, and refining a model with known poses.
+
+The pycolmap calls of SARA's pose-guided round (`sara.pairs.pose_guided`) live here:
+
+- `read_geometry`: poses, pinhole intrinsics, 3D points and their tracks of a model folder, as
+  plain arrays (what the covisibility prediction of `sara.selection.pose_guided` needs);
+- `triangulate_and_adjust`: COLMAP's point triangulator with the poses of a model held fixed
+  (`pycolmap.triangulate_points`), then a global bundle adjustment that frees the poses again.
+
+Conventions (COLMAP's): poses are ``cam_from_world`` (``x_cam = R @ X + t``), pixels have the
+centre of the top-left pixel at (0.5, 0.5).
+"""
+
+from __future__ import annotations
+
+import logging
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class ModelGeometry:
+    """A model's registered views and points; rows of the per-view arrays follow `names` (sorted).
+
+    Attributes:
+        names: registered image names, sorted (V).
+        rotations: (V, 3, 3) float64 cam_from_world.
+        translations: (V, 3) float64 cam_from_world.
+        focal_px: (V,) float64 mean focal length in pixels.
+        principal_px: (V, 2) float64 principal point in pixels.
+        sizes_px: (V, 2) float64 image width and height in pixels.
+        points_xyz: (P, 3) float64 world frame.
+        obs_point: (M,) int64 row of `points_xyz` of each observation.
+        obs_view: (M,) int64 row of `names` of each observation.
+    """
+
+    names: list[str]
+    rotations: np.ndarray
+    translations: np.ndarray
+    focal_px: np.ndarray
+    principal_px: np.ndarray
+    sizes_px: np.ndarray
+    points_xyz: np.ndarray
+    obs_point: np.ndarray
+    obs_view: np.ndarray
+
+    @property
+    def centers(self) -> np.ndarray:
+        """(V, 3) camera centres in the world frame: C = -R^T t."""
+        return -np.einsum("nji,nj->ni", self.rotations, self.translations)
+
+
+def read_geometry(model_dir: Path) -> ModelGeometry:
+    """The registered views, their pinhole intrinsics (distortion left out) and the tracks of a model."""
+    rec = pycolmap.Reconstruction(str(model_dir))
+    images = sorted((im for im in rec.images.values() if im.has_pose), key=lambda im: im.name)
+    row = {im.image_id: k for k, im in enumerate(images)}
+    poses = [im.cam_from_world() for im in images]
+    cams = [rec.cameras[im.camera_id] for im in images]
+    xyz = np.array([p.xyz for p in rec.points3D.values()], dtype=np.float64).reshape(-1, 3)
+    obs_point, obs_view = [], []
+    for k, point in enumerate(rec.points3D.values()):
+        for element in point.track.elements:
+            if element.image_id in row:
+                obs_point.append(k)
+                obs_view.append(row[element.image_id])
+    return ModelGeometry(
+        names=[im.name for im in images],
+        rotations=np.array([p.rotation.matrix() for p in poses], dtype=np.float64).reshape(-1, 3, 3),
+        translations=np.array([p.translation for p in poses], dtype=np.float64).reshape(-1, 3),
+        focal_px=np.array([np.mean([c.focal_length_x, c.focal_length_y]) for c in cams], dtype=np.float64),
+        principal_px=np.array([[c.principal_point_x, c.principal_point_y] for c in cams],
+                              dtype=np.float64).reshape(-1, 2),
+        sizes_px=np.array([[c.width, c.height] for c in cams], dtype=np.float64).reshape(-1, 2),
+        points_xyz=xyz,
+        obs_point=np.asarray(obs_point, dtype=np.int64),
+        obs_view=np.asarray(obs_view, dtype=np.int64),
+    )
+
+
+def triangulate_and_adjust(model_dir: Path, db_path: Path, image_dir: Path, out_dir: Path, *,
+                           num_threads: int = -1, seed: int = 0) -> dict[str, float]:
+    """Re-triangulate every match of the database with the model's poses fixed, then bundle-adjust all.
+
+    COLMAP's point triangulator (`pycolmap.triangulate_points`: triangulation, track merging and
+    completion, re-triangulation, with the poses held constant) followed by one global bundle
+    adjustment of poses and points (focal length and radial distortion refined, principal point
+    fixed, as in COLMAP's mapper). Writes the result to `out_dir` (replaced); returns counts.
+    """
+    rec = pycolmap.Reconstruction(str(model_dir))
+    out_dir = Path(out_dir)
+    tmp = out_dir.with_name(out_dir.name + ".partial")
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    options = pycolmap.IncrementalPipelineOptions()
+    options.num_threads = num_threads
+    options.random_seed = seed
+    options.triangulation.random_seed = seed
+    rec = pycolmap.triangulate_points(rec, str(db_path), str(image_dir), str(tmp), clear_points=True,
+                                      options=options, refine_intrinsics=False)
+    pycolmap.bundle_adjustment(rec, pycolmap.BundleAdjustmentOptions())
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    rec.write(str(tmp))
+    if out_dir.exists():
+        shutil.rmtree(out_dir)
+    tmp.rename(out_dir)
+    return {"num_points3d": float(rec.num_points3D()), "num_registered": float(rec.num_reg_images())}

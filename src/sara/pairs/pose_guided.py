@@ -1,0 +1,118 @@
+"""SARA's pose-guided round: after the first model, match the unmatched pairs that add the most.
+
+The first model's poses and points predict, for every unmatched pair of registered views, how
+many of its points the two views share and how many of those are already tied to both views
+through other pairs (`sara.selection.pose_guided`). The pairs whose matching adds the most
+observations are matched, then the model is refined: re-triangulated with its poses held fixed
+and bundle-adjusted (`refine`, used where the pipeline offers it; otherwise the pipeline maps
+again from scratch with the added pairs).
+
+Why (docs/ACCURACY.md): with the first model's poses, re-triangulating *all* of exhaustive
+matching's verified pairs and bundle-adjusting reaches exhaustive matching's accuracy; the gap
+left by a sparse selection is a lack of constraints, not wrong pairs nor the mapper's path. A few
+pose-guided pairs per view recover most of it.
+
+Every round respects the pair cap of `GraphConfig.pair_cap` (all rounds together).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from itertools import combinations
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .. import colmap
+from ..colmap import refine as colmap_refine
+from ..io import fingerprint, records
+from ..io.pairs import Pair
+from ..selection import pose_guided
+from . import PairContext
+
+logger = logging.getLogger(__name__)
+
+STAGE = "pose_guided"
+
+
+def budget(ctx: PairContext, num_matched: int, num_registered: int) -> int:
+    """Pairs the pose-guided round may add: its own budget, within the cap of all rounds."""
+    graph = ctx.conf.graph
+    ratio = graph.densify_pairs_per_image if graph.densify else graph.pose_guided_pairs_per_image
+    own = int(np.ceil(ratio * num_registered - 1e-9))
+    cap = graph.pair_cap(len(ctx.names)) if not graph.densify else graph.densify_cap(len(ctx.names))
+    return max(0, min(own, cap - num_matched))
+
+
+def candidate_pairs(names: list[str], matched: list[Pair]) -> np.ndarray:
+    """(K, 2) int64 rows of `names`: every pair of registered views not matched yet."""
+    index = {n: i for i, n in enumerate(names)}
+    done = {tuple(sorted((index[a], index[b]))) for a, b in matched if a in index and b in index}
+    return np.array([p for p in combinations(range(len(names)), 2) if p not in done],
+                    dtype=np.int64).reshape(-1, 2)
+
+
+def select_extra(ctx: PairContext, pairs: list[Pair], model_dir: Path) -> tuple[list[Pair], dict[str, Any]]:
+    """The pose-guided pairs to match next (sorted), and what the choice was based on."""
+    tic = time.perf_counter()
+    geom = colmap_refine.read_geometry(model_dir)
+    graph = ctx.conf.graph
+    limit = budget(ctx, len(pairs), len(geom.names))
+    candidates = candidate_pairs(geom.names, pairs)
+    if limit <= 0 or len(candidates) == 0:
+        return [], {"budget": limit, "num_candidates": len(candidates)}
+    cov = pose_guided.covisibility(geom, candidates, max_view_angle_deg=graph.pose_guided_max_view_angle_deg)
+    rule = "covisible" if graph.densify else "gain"
+    chosen = pose_guided.choose_pairs(candidates, cov, limit, rule=rule,
+                                      min_covisible=graph.pose_guided_min_points)
+    extra = sorted(tuple(sorted((geom.names[a], geom.names[b]))) for a, b in candidates[chosen])
+    info = {"budget": limit, "num_candidates": len(candidates), "num_chosen": len(extra), "rule": rule,
+            "predicted_covisible_median": float(np.median(cov.covisible[chosen])) if len(chosen) else 0.0,
+            "time_s": time.perf_counter() - tic}
+    return extra, info
+
+
+def selection_key(first_round: list[Pair], graph: Any) -> str:
+    """What a pose-guided round depends on: the first round's pairs and the graph settings."""
+    return fingerprint({"pairs": sorted(tuple(sorted(p)) for p in first_round), "graph": graph.__dict__})
+
+
+def recorded_pairs(out_dir: Path, key: str) -> list[Pair] | None:
+    """The pairs a round with this key chose before (None when none did)."""
+    record = records.read_record(out_dir, STAGE)
+    if not record or record.get("key") != key or record.get("done") is not True:
+        return None
+    return [tuple(p) for p in record.get("info", {}).get("pairs", [])]
+
+
+def mark_chosen(out_dir: Path, key: str, extra: list[Pair], info: dict[str, Any]) -> None:
+    records.mark_done(out_dir, STAGE, key, {**info, "pairs": [list(p) for p in extra]})
+
+
+def refine(ctx: PairContext, extra: list[Pair], db_path: Path, model_dir: Path,
+           out_dir: Path) -> dict[str, Any] | None:
+    """Refine the model after the pose-guided round instead of mapping again from scratch.
+
+    Re-triangulates every match of `db_path` with the poses of `model_dir` held fixed, then
+    bundle-adjusts poses and points together, into `out_dir`. Returns its counts and time, or None
+    when the round's pairs `extra` are not the pose-guided round's (views left out of the model need the mapper
+    to register them) or there is no model: then map again.
+
+    The pipeline calls this through `after_mapping.refine` where it supports it (docs/ACCURACY.md,
+    "Pipeline change"); otherwise the round's pairs are mapped again from scratch.
+    """
+    record = records.read_record(ctx.out_dir, STAGE) or {}
+    chosen = {tuple(p) for p in record.get("info", {}).get("pairs", [])}
+    if record.get("done") is not True or not chosen or not colmap.has_model(model_dir):
+        return None
+    if chosen != {tuple(sorted(p)) for p in extra}:
+        return None
+    tic = time.perf_counter()
+    counts = colmap_refine.triangulate_and_adjust(model_dir, db_path, ctx.images_root, out_dir,
+                                                  num_threads=ctx.conf.map.num_threads, seed=ctx.conf.seed)
+    elapsed = time.perf_counter() - tic
+    logger.info("pose-guided round: re-triangulated and bundle-adjusted in %.1f s (%d points)", elapsed,
+                counts["num_points3d"])
+    return {"time_s": elapsed, **counts}
