@@ -4,6 +4,7 @@ the COLMAP database (images, cameras, keypoints), for any backend of `sara.featu
 from __future__ import annotations
 
 import logging
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -91,8 +92,10 @@ def run(conf: ExtractConfig, images: ImageSet, out_dir: Path, *, executor: Execu
     out_dir = Path(out_dir)
     db_path, h5_path = out_dir / DB_NAME, out_dir / features_file_name(conf)
     key = _key(images, conf)
+    tic = time.perf_counter()
     if not overwrite and records.is_done(out_dir, STAGE, key) and _outputs_intact(out_dir, db_path, h5_path):
         logger.info("extract: features up to date, skipping")
+        usable(images, out_dir, warn=True)  # the images it set aside, one warning each as when it ran
         return h5_path
     backend = make_backend(conf)  # loads weights: a missing file fails here, before any work
     record = records.read_record(out_dir, STAGE)
@@ -129,15 +132,15 @@ def run(conf: ExtractConfig, images: ImageSet, out_dir: Path, *, executor: Execu
         _import_keypoints(db_path, h5_path, readable.names)
     info = _summary(counts)
     info.update(camera_mode=camera_mode, backend=conf.backend, features=h5_path.name,
-                skipped={**unreadable, **failed})
+                skipped={**unreadable, **failed}, time_s=time.perf_counter() - tic)
     records.mark_done(out_dir, STAGE, key, info, outputs=_outputs(db_path, h5_path))
     return h5_path
 
 
-def usable(images: ImageSet, out_dir: Path) -> ImageSet:
+def usable(images: ImageSet, out_dir: Path, *, warn: bool = False) -> ImageSet:
     """The images of a finished extraction: without those its record lists as unreadable."""
     skipped = records.done_info(out_dir, STAGE).get("skipped", {})
-    return set_aside(images, {n: r for n, r in skipped.items() if n in images.sizes})
+    return set_aside(images, {n: r for n, r in skipped.items() if n in images.sizes}, warn=warn)
 
 
 def _outputs(db_path: Path, h5_path: Path) -> dict:

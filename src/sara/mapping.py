@@ -95,16 +95,20 @@ def _map(conf: MapConfig, db_path: Path, images_root: Path, tmp: Path, seed: int
 
 def no_model_reason(db_path: Path, conf: MapConfig, min_num_inliers: int) -> str:
     """Why the mapper found no model, from the verified pairs of the database."""
-    num_pairs, num_images, groups = colmap.verified_graph(db_path, min_num_inliers)
+    num_pairs, num_images, _, most_inliers = colmap.verified_graph(db_path, min_num_inliers)
     if num_pairs == 0:
         return (f"no image pair has {min_num_inliers} or more verified matches (match.min_num_inliers): "
                 "the images do not overlap, or the pairs are wrong")
-    if groups[0] < conf.min_model_size:
-        return (f"the largest group of images linked by verified pairs has {groups[0]} images "
-                f"({num_pairs} verified pairs), fewer than map.min_model_size={conf.min_model_size}; "
-                f"lower it (-s map.min_model_size={max(2, groups[0])}) or add images")
-    return (f"the mapper found no pair of images to start from among {num_images} images linked by "
-            f"{num_pairs} verified pairs (too little parallax between the views, or the matches lie on a plane)")
+    need_inliers, need_angle = colmap.mapper_init_requirements()
+    linked = f"{num_images} images linked by {num_pairs} verified pairs"
+    if conf.mapper == "incremental" and most_inliers < need_inliers:
+        return (f"the mapper found no pair of views to start from among the {linked}: the best pair has "
+                f"{most_inliers} inlier matches and COLMAP's mapper needs {need_inliers} to start a model")
+    if conf.mapper == "incremental":
+        return (f"the mapper found no pair of views to start from among the {linked} (the best has {most_inliers} "
+                f"inlier matches): COLMAP's mapper also needs {need_angle:g} degrees of triangulation angle between "
+                "them, and these views are too close together, turn on the spot, or see a flat scene")
+    return f"the global mapper found no model among the {linked}"
 
 
 def swap_in(new: Path, sparse: Path) -> None:

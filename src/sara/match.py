@@ -66,6 +66,7 @@ def run(conf: MatchConfig, pairs_path: Path, db_path: Path, out_dir: Path, *, fe
     matcher = make_matcher(conf, features_backend)  # loads weights: fails here, before any work
     conf_key = fingerprint({**conf.__dict__, "backend": matcher_name, "features": Path(features_path).name})
     same_settings = records.is_done(out_dir, CONF_RECORD, conf_key)
+    kept = {stage: records.read_record(out_dir, stage) for stage in (STAGE, CONF_RECORD, PROGRESS_RECORD)}
     work = _work_database(db_path, next_db, out_dir, key, beside=beside and before["num_matched_pairs"] > 0
                           and not (same_settings and _only_additions(db_path, pairs, names)))
     if not same_settings:
@@ -73,16 +74,18 @@ def run(conf: MatchConfig, pairs_path: Path, db_path: Path, out_dir: Path, *, fe
         records.mark_done(out_dir, CONF_RECORD, conf_key)
     else:
         _remove_other_pairs(work, pairs, names)  # keep the matches that are still wanted
-    previous = records.read_record(out_dir, STAGE)
     records.mark_started(out_dir, STAGE, key)
     elapsed, num_done = _match_all(conf, matcher, features_backend, features_path, pairs, names, work, out_dir, key,
                                    executor, progress)
     info = {"num_pairs": len(pairs), "num_matched_now": num_done, "time_s": elapsed, "matcher": matcher.name,
             **verification_stats(work, conf.min_num_inliers)}
     if info["num_verified_pairs"] == 0:
-        records.restore(out_dir, STAGE, previous)
         if work != Path(db_path):
             colmap.remove_database(work)
+            for stage, record in kept.items():  # they describe the database that is kept
+                records.restore(out_dir, stage, record)
+        else:
+            records.restore(out_dir, STAGE, kept[STAGE])
         raise NoResultError(
             f"none of the {len(pairs)} pairs has {conf.min_num_inliers} or more verified matches "
             f"(match.min_num_inliers): the images do not overlap, or the pairs are wrong"

@@ -76,6 +76,25 @@ def _sqlite_header_problem(path: Path) -> str | None:
     return None
 
 
+def _query(db_path: Path, *queries: tuple[str, tuple]) -> list[list[tuple]]:
+    """Run read-only SQL on a database with SQLite alone (pycolmap's open writes to the file even
+    when only reading, which would change its bytes). Opened read-write when possible, so that a
+    write-ahead log is merged and removed on close; read-only in a read-only folder."""
+    import sqlite3
+
+    for mode in ("rw", "ro"):
+        try:
+            con = sqlite3.connect(f"file:{db_path}?mode={mode}", uri=True)
+            try:
+                return [con.execute(sql, args).fetchall() for sql, args in queries]
+            finally:
+                con.close()
+        except sqlite3.OperationalError as exc:
+            if mode == "ro" or not any(w in str(exc) for w in ("readonly", "read-only", "unable to open")):
+                raise
+    raise AssertionError("unreachable")
+
+
 def database_summary(db_path: Path) -> dict[str, Any] | None:
     """Counts and digests of a COLMAP database, read with SQLite alone (cheap; None when absent).
 
@@ -93,18 +112,15 @@ def database_summary(db_path: Path) -> dict[str, Any] | None:
     if problem is not None:
         raise DamagedOutputError(f"{db_path} is damaged ({problem})")
     try:
-        con = sqlite3.connect(f"file:{db_path}?mode=ro", uri=True)
-        try:
-            tables = {r[0] for r in con.execute("SELECT name FROM sqlite_master WHERE type='table'")}
-            missing = [t for t in _DB_TABLES if t not in tables]
-            if missing:
-                raise DamagedOutputError(f"{db_path} is not a COLMAP database (no table {missing[0]})")
-            images = con.execute("SELECT image_id, name FROM images ORDER BY image_id").fetchall()
-            keypoints = con.execute("SELECT image_id, rows FROM keypoints ORDER BY image_id").fetchall()
-            matches = con.execute("SELECT pair_id, rows FROM matches ORDER BY pair_id").fetchall()
-            geometries = con.execute("SELECT pair_id, rows, config FROM two_view_geometries ORDER BY pair_id").fetchall()
-        finally:
-            con.close()
+        (tables,) = _query(db_path, ("SELECT name FROM sqlite_master WHERE type='table'", ()))
+        missing = [t for t in _DB_TABLES if t not in {r[0] for r in tables}]
+        if missing:
+            raise DamagedOutputError(f"{db_path} is not a COLMAP database (no table {missing[0]})")
+        images, keypoints, matches, geometries = _query(
+            db_path, ("SELECT image_id, name FROM images ORDER BY image_id", ()),
+            ("SELECT image_id, rows FROM keypoints ORDER BY image_id", ()),
+            ("SELECT pair_id, rows FROM matches ORDER BY pair_id", ()),
+            ("SELECT pair_id, rows, config FROM two_view_geometries ORDER BY pair_id", ()))
     except sqlite3.DatabaseError as exc:
         raise DamagedOutputError(f"{db_path} is damaged ({exc})") from None
     names = dict(images)
@@ -118,16 +134,11 @@ def database_summary(db_path: Path) -> dict[str, Any] | None:
     }
 
 
-def verified_graph(db_path: Path, min_num_inliers: int) -> tuple[int, int, list[int]]:
+def verified_graph(db_path: Path, min_num_inliers: int) -> tuple[int, int, list[int], int]:
     """(pairs with at least `min_num_inliers` verified matches, images they touch, the sizes of the
-    connected groups of images they form, largest first): why a mapper may find no model."""
-    import sqlite3
-
-    con = sqlite3.connect(f"file:{Path(db_path)}?mode=ro", uri=True)
-    try:
-        rows = con.execute("SELECT pair_id FROM two_view_geometries WHERE rows >= ?", (int(min_num_inliers),)).fetchall()
-    finally:
-        con.close()
+    connected groups of images they form (largest first), the most inlier matches of one pair):
+    why a mapper may find no model."""
+    (rows,) = _query(db_path, ("SELECT pair_id, rows FROM two_view_geometries WHERE rows >= ?", (int(min_num_inliers),)))
     parent: dict[int, int] = {}
 
     def find(i: int) -> int:
@@ -136,13 +147,20 @@ def verified_graph(db_path: Path, min_num_inliers: int) -> tuple[int, int, list[
             i = parent[i]
         return i
 
-    for (pair_id,) in rows:
+    for pair_id, _ in rows:
         i, j = pycolmap.pair_id_to_image_pair(int(pair_id))
         parent[find(int(i))] = find(int(j))
     groups: dict[int, int] = {}
     for i in list(parent):
         groups[find(i)] = groups.get(find(i), 0) + 1
-    return len(rows), len(parent), sorted(groups.values(), reverse=True)
+    return len(rows), len(parent), sorted(groups.values(), reverse=True), max((int(r) for _, r in rows), default=0)
+
+
+def mapper_init_requirements() -> tuple[int, float]:
+    """(inlier matches, triangulation angle in degrees) that COLMAP's incremental mapper needs
+    between two views to start a model."""
+    opts = pycolmap.IncrementalPipelineOptions()
+    return int(opts.mapper.init_min_num_inliers), float(opts.mapper.init_min_tri_angle)
 
 _CAMERA_MODES = {
     "single": pycolmap.CameraMode.SINGLE,
@@ -168,7 +186,8 @@ def hloc_to_colmap_keypoints(xy: np.ndarray) -> np.ndarray:
 def send_log_to(log_dir: Path | None, *, verbose: bool = False) -> None:
     """Route COLMAP's own log into `log_dir/colmap-<time>.<pid>` (or to the console when verbose).
 
-    Without a folder and not verbose, only COLMAP's errors reach the console.
+    Without a folder and not verbose, only COLMAP's errors reach the console; with a folder, none
+    (sara reports a failure in one line that names the log).
     """
     logging_ = pycolmap.logging
     if verbose:
@@ -176,10 +195,11 @@ def send_log_to(log_dir: Path | None, *, verbose: bool = False) -> None:
         logging_.alsologtostderr = True
         return
     logging_.alsologtostderr = False
-    logging_.stderrthreshold = 2  # errors still reach the console
+    logging_.stderrthreshold = 2  # without a log file, errors still reach the console
     if log_dir is None:
         logging_.minloglevel = 2
         return
+    logging_.stderrthreshold = 3  # with one, sara's own one-line error says what failed and names the log
     Path(log_dir).mkdir(parents=True, exist_ok=True)
     logging_.minloglevel = 0
     logging_.set_log_destination(logging_.INFO, str(Path(log_dir) / "colmap-"))
@@ -208,7 +228,7 @@ def copy_database(src: Path, dst: Path) -> None:
     from ..io import atomic_path
 
     with atomic_path(dst) as tmp:
-        source = sqlite3.connect(f"file:{src}?mode=ro", uri=True)
+        source = sqlite3.connect(f"file:{src}?mode=rw", uri=True)  # rw: its log is merged and removed on close
         target = sqlite3.connect(tmp)
         try:
             source.backup(target)
@@ -302,14 +322,15 @@ def write_keypoints(db_path: Path, keypoints: dict[str, np.ndarray]) -> None:
 
 
 def images_with_keypoints(db_path: Path) -> set[str]:
-    with open_database(db_path) as db:
-        return {im.name for im in db.read_all_images() if db.exists_keypoints(im.image_id)}
+    """Names of the images that have a keypoints entry (read with SQLite: the file is not touched)."""
+    (rows,) = _query(db_path, ("SELECT name FROM images JOIN keypoints USING (image_id)", ()))
+    return {name for (name,) in rows}
 
 
 def database_images(db_path: Path) -> dict[str, int]:
-    """name -> image_id of the images in a database."""
-    with open_database(db_path) as db:
-        return {im.name: im.image_id for im in db.read_all_images()}
+    """name -> image_id of the images in a database (read with SQLite: the file is not touched)."""
+    (rows,) = _query(db_path, ("SELECT name, image_id FROM images", ()))
+    return {name: int(image_id) for name, image_id in rows}
 
 
 def read_sift(db: pycolmap.Database, image_id: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

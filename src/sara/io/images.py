@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import os
+import unicodedata
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -98,16 +99,19 @@ def check_image(path: Path) -> tuple[tuple[int, int] | None, str | None, int]:
 
 
 def display_name(name: str) -> str:
-    """A name as it can be printed and stored in UTF-8 files: bytes that are not UTF-8 as `\\xNN`."""
-    return name.encode("utf-8", "surrogateescape").decode("utf-8", "backslashreplace")
+    """A name as it can be printed on one line and stored in UTF-8 files: bytes that are not UTF-8
+    as `\\xNN`, control characters (newlines, tabs) escaped as Python writes them."""
+    text = name.encode("utf-8", "surrogateescape").decode("utf-8", "backslashreplace")
+    return "".join(repr(c)[1:-1] if unicodedata.category(c) in ("Cc", "Zl", "Zp") else c for c in text)
 
 
-def set_aside(images: ImageSet, reasons: dict[str, str]) -> ImageSet:
+def set_aside(images: ImageSet, reasons: dict[str, str], *, warn: bool = True) -> ImageSet:
     """The set without the images of `reasons` (name -> why), each skipped with one warning."""
     if not reasons:
         return images
     for name, reason in reasons.items():
-        logger.warning("skipping %s: %s", display_name(name), reason)
+        if warn:
+            logger.warning("skipping %s: %s", display_name(name), reason)
     skipped = {**images.skipped, **{display_name(n): r for n, r in reasons.items()}}
     return ImageSet(root=images.root, names=[n for n in images.names if n not in reasons],
                     sizes={n: s for n, s in images.sizes.items() if n not in reasons}, skipped=skipped,
