@@ -193,8 +193,8 @@ class GraphConfig:
 
     pose_guided_pairs_per_image: float = 1.0
     """Pairs per registered image that SARA's pose-guided round adds after the first model
-    (pairs / image; 0 disables the round): the unmatched pairs whose predicted covisible points
-    are least tied through other pairs yet (docs/ACCURACY.md)."""
+    (pairs / image; 0 disables the round): the unmatched pairs of registered views with the highest
+    weight w = O^alpha g(P)^beta, overlap and parallax predicted by the model (docs/ACCURACY.md)."""
     pose_guided_min_points: int = 30
     """A pair is matched in the pose-guided round only if the first model predicts at least this
     many covisible points (points); fewer rarely pass verification (15 inliers)."""

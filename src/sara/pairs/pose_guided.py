@@ -64,9 +64,11 @@ def select_extra(ctx: PairContext, pairs: list[Pair], model_dir: Path) -> tuple[
     if limit <= 0 or len(candidates) == 0:
         return [], {"budget": limit, "num_candidates": len(candidates)}
     cov = pose_guided.covisibility(geom, candidates, max_view_angle_deg=graph.pose_guided_max_view_angle_deg)
-    rule = "covisible" if graph.densify else "gain"
-    chosen = pose_guided.choose_pairs(candidates, cov, limit, rule=rule,
-                                      min_covisible=graph.pose_guided_min_points)
+    rule = "covisible" if graph.densify else "weight"
+    score = ctx.conf.score
+    chosen = pose_guided.choose_pairs(candidates, cov, limit, rule=rule, min_covisible=graph.pose_guided_min_points,
+                                      alpha=score.alpha, beta=score.beta,
+                                      parallax_saturation_deg=score.parallax_saturation_deg)
     extra = sorted(tuple(sorted((geom.names[a], geom.names[b]))) for a, b in candidates[chosen])
     info = {"budget": limit, "num_candidates": len(candidates), "num_chosen": len(extra), "rule": rule,
             "predicted_covisible_median": float(np.median(cov.covisible[chosen])) if len(chosen) else 0.0,

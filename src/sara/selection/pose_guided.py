@@ -8,8 +8,8 @@ view ``j``. For a pair ``(i, j)`` this module counts, from each side,
   from directions at most ``max_view_angle_deg`` apart (SIFT seldom matches across wider angles);
 - ``linked``: points whose track already holds both views (tied through other pairs already);
 
-and the median triangulation angle of the covisible points. Matching the pair adds observations
-of the covisible points that are not linked yet (``gain = covisible - linked``) and new points.
+and the median triangulation angle of the covisible points. From these come SARA's pair weight,
+predicted instead of sampled (`pair_scores`).
 
 The core works on arrays: a `ModelGeometry`-like object (names, rotations, translations,
 focal_px, principal_px, sizes_px, points_xyz, obs_point, obs_view; see `sara.colmap.refine`).
@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 #: ways to rank unmatched pairs (see `pair_scores`)
-RULES = ("gain", "covisible")
+RULES = ("weight", "covisible")
 
 
 @dataclass(frozen=True)
@@ -79,29 +79,38 @@ def covisibility(geom, pairs: np.ndarray, *, max_view_angle_deg: float = 45.0) -
     return Covisibility(covisible.mean(axis=1), linked, tri, observed)
 
 
-def pair_scores(cov: Covisibility, rule: str) -> np.ndarray:
-    """(K,) float64 how much matching each pair is expected to add (higher first).
+def pair_scores(cov: Covisibility, pairs: np.ndarray, rule: str, *, alpha: float = 1.0, beta: float = 0.5,
+                parallax_saturation_deg: float = 10.0) -> np.ndarray:
+    """(K,) float64 how much matching each pair of `pairs` ((K, 2) view rows) is expected to add.
 
-    ``gain``: covisible points not linked yet (new observations of known points, new points);
-    ``covisible``: all covisible points (the most new 3D points: `densify`).
+    ``weight``: SARA's pair weight ``w = O^alpha * g(P)^beta`` (as the scorer's, see
+    `sara.scoring.pair_weight`) with the overlap ``O = covisible / sqrt(n_i n_j)`` (``n``: points
+    each view observes) and the parallax ``P`` (median triangulation angle) predicted by the model
+    instead of sampled from 50 matches; ``covisible``: all covisible points (the most new 3D
+    points: `densify`).
     """
-    if rule == "gain":
-        return np.maximum(cov.covisible - cov.linked, 0.0)
     if rule == "covisible":
         return cov.covisible.astype(np.float64)
-    raise ValueError(f"unknown pose-guided rule {rule!r}; choose one of {', '.join(RULES)}")
+    if rule != "weight":
+        raise ValueError(f"unknown pose-guided rule {rule!r}; choose one of {', '.join(RULES)}")
+    pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
+    observed = cov.observed.astype(np.float64)
+    norm = np.sqrt(np.maximum(observed[pairs[:, 0]] * observed[pairs[:, 1]], 1.0))
+    saturated = np.minimum(np.maximum(cov.tri_angle_deg, 0.0), parallax_saturation_deg) / parallax_saturation_deg
+    return (cov.covisible / norm) ** alpha * saturated ** beta
 
 
-def choose_pairs(pairs: np.ndarray, cov: Covisibility, budget: int, *, rule: str = "gain",
-                 min_covisible: float = 0.0) -> np.ndarray:
+def choose_pairs(pairs: np.ndarray, cov: Covisibility, budget: int, *, rule: str = "weight",
+                 min_covisible: float = 0.0, **weight_params: float) -> np.ndarray:
     """Indices into `pairs` of at most `budget` pairs, best first (ties: by pair index).
 
     Pairs with fewer than `min_covisible` predicted covisible points (or none) are never chosen:
-    matching them would not pass geometric verification.
+    matching them would not pass geometric verification. `weight_params`: alpha, beta,
+    parallax_saturation_deg of `pair_scores`.
     """
     if budget <= 0 or len(pairs) == 0:
         return np.zeros(0, dtype=np.int64)
-    score = pair_scores(cov, rule)
+    score = pair_scores(cov, pairs, rule, **weight_params)
     usable = np.flatnonzero((cov.covisible >= max(min_covisible, 1e-9)) & (score > 0))
     order = usable[np.argsort(-score[usable], kind="stable")]
     return order[:budget].astype(np.int64)
