@@ -314,6 +314,9 @@ def main(argv: list[str] | None = None) -> int:
         commands[args.command](args)
     except KeyboardInterrupt as exc:
         signum = exc.signum if isinstance(exc, Terminated) else signal.SIGINT
+        for other in previous:  # a second signal while exiting changes nothing
+            signal.signal(other, signal.SIG_IGN)
+        previous = {}
         name = signal.Signals(signum).name
         print(f"sara: error: interrupted by {name}; run the same command again to resume where it stopped",
               file=sys.stderr)

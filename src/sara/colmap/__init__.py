@@ -533,9 +533,9 @@ def read_reconstruction(model_dir: Path) -> pycolmap.Reconstruction:
         )
     try:
         return pycolmap.Reconstruction(model_dir)
-    except ValueError as error:  # pycolmap reports missing or unreadable files this way
+    except (ValueError, RuntimeError, LookupError, EOFError) as error:  # missing, cut short, damaged
         raise FileNotFoundError(
-            f"Could not read a COLMAP model from {model_dir}: {error}"
+            f"Could not read a COLMAP model from {model_dir} (damaged or incomplete: {error})"
         ) from error
 
 
