@@ -22,6 +22,22 @@ from ..io import DamagedOutputError, LOW_SPACE_BYTES, disk_full_error, fingerpri
 logger = logging.getLogger(__name__)
 
 
+def _sigterm_without_stack_dump() -> None:
+    """pycolmap installs glog's failure handler, which prints a native stack dump on SIGTERM (a
+    request to stop, not a crash: schedulers, `timeout` and `docker stop` send it, often to every
+    process of the group). Give SIGTERM its default action back, unless Python code set a handler;
+    crashes (SIGSEGV, SIGABRT) keep their dump. The `sara` command then installs its own handler."""
+    import signal
+    import threading
+
+    if threading.current_thread() is threading.main_thread() and signal.getsignal(signal.SIGTERM) in (
+            signal.SIG_DFL, None):
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)
+
+
+_sigterm_without_stack_dump()
+
+
 class ColmapError(RuntimeError):
     """COLMAP failed for a reason that is not a full disk or a damaged database (see its log)."""
 
