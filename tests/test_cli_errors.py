@@ -1,4 +1,5 @@
-"""Bad input to the commands gives one line that says what is wrong and a non-zero exit."""
+"""Bad input to the commands gives one line that says what is wrong and its documented exit code
+(2: bad usage or input; see README, "Bad input"). The fault suite is test_faults.py."""
 
 import subprocess
 import sys
@@ -13,8 +14,8 @@ def sara(*args, cwd=None):
     return proc.returncode, proc.stdout, proc.stderr
 
 
-def assert_one_line_error(rc, err, *fragments):
-    assert rc != 0
+def assert_one_line_error(rc, err, *fragments, code=2):
+    assert rc == code, err
     assert "Traceback" not in err
     lines = [ln for ln in err.strip().splitlines() if ln.startswith("sara: error:")]
     assert len(lines) == 1, err
@@ -73,6 +74,7 @@ def test_evaluate_missing_gt(tmp_path: Path):
 def test_match_without_extract(tmp_path: Path):
     rc, _, err = sara("match", tmp_path / "out")
     assert_one_line_error(rc, err, "run `sara extract")
+
 
 
 @pytest.mark.parametrize("command", ["run", "extract", "pairs", "match", "map", "evaluate", "demo", "bench"])
