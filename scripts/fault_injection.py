@@ -1,18 +1,29 @@
 #!/usr/bin/env python
-"""Kill `sara run` with SIGKILL at random moments, resume each time, compare with an uninterrupted run.
+"""Interrupt `sara run` at random moments and damage its outputs between runs; check that every
+resume ends with the result of an uninterrupted run, or refuses in one line without changing a byte.
 
-    python scripts/fault_injection.py ../shared/data/strecha-fountain-P11 --kills 10 --out /tmp/faults
+    python scripts/fault_injection.py ../shared/data/middlebury-templeSparseRing --kills 8 --out /tmp/faults
 
-The kills are aimed at every stage in turn (extract, pairs, match, map): before each kill the
-script looks at which stages the output folder has finished and waits a random time inside the
-next stage's duration, as measured on the reference run. At the end it checks that the final
-pairs are identical and the models agree (same registered images; accuracy against the scene's
-ground truth, when it has one, within 0.01 AUC@5).
+1. A reference run, uninterrupted.
+2. Kills: `sara run` is stopped with SIGKILL and SIGTERM in turn (`--signals`) at a random moment
+   inside each stage in turn (extract, pairs, match, map; the moment is drawn within the stage's
+   duration in the reference run), then resumed. A SIGTERM must end in exit 143 with one
+   `sara: error:` line and no native stack dump. The last resume must give the reference's pairs
+   and registered images (and, with a ground truth, AUC@5 within 0.01).
+3. Damage: for each output file (features, global descriptors, scores, pairs, database, model
+   files, run.json, report, metrics, every stage record) and each mode (`--damage`: truncate to
+   half, empty, overwrite with garbage, delete), a copy of the finished folder is damaged and run
+   again. The run must either finish (exit 0) with the reference's pairs and registered images, or
+   refuse with exit 3 and one line that names the file, leaving every file byte-identical.
+
+Figures (printed and written to OUT/fault_injection.json): cases, kills, resumes, identical
+results.
 """
 
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import os
 import random
@@ -24,6 +35,12 @@ import time
 from pathlib import Path
 
 STAGES = ("extract", "pairs", "match", "map")
+NATIVE_NOISE = ("Traceback", "*** Aborted", "stack trace", "terminate called")
+DAMAGE_MODES = ("truncate", "empty", "garbage", "delete")
+#: output files damaged in phase 3 (paths relative to the output folder; globs allowed)
+DAMAGED_FILES = ("features-sift.h5", "global-*.h5", "scores.csv", "pairs.txt", "database.db", "sparse/0/cameras.bin",
+                 "sparse/0/images.bin", "sparse/0/points3D.bin", "run.json", "report.md", "metrics.json",
+                 ".sara/extract.json", ".sara/pairs.json", ".sara/match.json", ".sara/map.json")
 
 
 def sara_cmd(images: Path, out: Path, extra: list[str]) -> list[str]:
@@ -44,24 +61,141 @@ def next_stage(out: Path) -> str | None:
 
 def run_reference(images: Path, out: Path, extra: list[str]) -> tuple[dict, float]:
     tic = time.perf_counter()
-    subprocess.run(sara_cmd(images, out, extra), check=True)
+    subprocess.run(sara_cmd(images, out, extra), check=True, stdout=subprocess.DEVNULL)
     total = time.perf_counter() - tic
     return json.loads((out / "run.json").read_text()), total
 
 
 def registered(out: Path) -> list[str]:
-    import pycolmap
+    from sara.colmap import registered_images
 
-    rec = pycolmap.Reconstruction(str(out / "sparse" / "0"))
-    return sorted(im.name for im in rec.images.values() if im.has_pose)
+    return sorted(registered_images(out / "sparse" / "0"))
+
+
+def snapshot(out: Path) -> dict[str, str]:
+    """sha256 of every file (COLMAP's logs and the lock aside; a database's change counter aside)."""
+    digests = {}
+    for path in sorted(out.rglob("*")):
+        rel = path.relative_to(out).as_posix()
+        if path.is_file() and not rel.startswith("logs/") and rel != ".sara.lock":
+            data = bytearray(path.read_bytes())
+            if data.startswith(b"SQLite format 3\x00") and len(data) >= 100:
+                data[24:28] = data[92:96] = b"\0\0\0\0"
+            digests[rel] = hashlib.sha256(data).hexdigest()
+    return digests
+
+
+def clean_stderr(err: str) -> tuple[bool, list[str]]:
+    """(no traceback or native dump, the `sara: error:` lines)."""
+    lines = [ln for ln in err.splitlines() if ln.startswith("sara: error:")]
+    return not any(noise in err for noise in NATIVE_NOISE), lines
+
+
+def same_result(ref_out: Path, out: Path) -> bool:
+    try:
+        return (ref_out / "pairs.txt").read_text() == (out / "pairs.txt").read_text() and \
+            registered(ref_out) == registered(out)
+    except (OSError, ValueError, RuntimeError):
+        return False
+
+
+# ---------------------------------------------------------------------------------------------
+# Phase 2: kills
+# ---------------------------------------------------------------------------------------------
+
+
+def kill_phase(args, images: Path, extra: list[str], test_out: Path, stage_time: dict, startup: float,
+               rng: random.Random) -> tuple[list[dict], int]:
+    kills, resumes = [], 0
+    signals = [getattr(signal, f"SIG{name.strip().upper()}") for name in args.signals.split(",")]
+    for i in range(args.kills):
+        signum = signals[i % len(signals)]
+        target = next_stage(test_out) or "map"
+        delay = startup * 0.8 + rng.uniform(0.05, 0.95) * stage_time[target]
+        if i > 0:
+            resumes += 1  # every run after the first resumes an interrupted one
+        proc = subprocess.Popen(sara_cmd(images, test_out, extra), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                                text=True)
+        time.sleep(delay)
+        finished = proc.poll() is not None
+        if not finished:
+            proc.send_signal(signum)
+        _, err = proc.communicate()
+        clean, lines = clean_stderr(err)
+        reached = next_stage(test_out)
+        record = {"kill": i + 1, "signal": signal.Signals(signum).name, "aimed_at": target, "after_s": round(delay, 2),
+                  "finished_first": finished, "exit": proc.returncode, "stage_when_killed": reached or "done"}
+        if signum == signal.SIGTERM and not finished:
+            record["clean"] = clean and len(lines) == 1 and proc.returncode == 143
+        kills.append(record)
+        print(f"kill {i + 1:2d}: {record['signal']:7s} aimed at {target:7s} after {delay:5.1f} s -> "
+              f"{'run had finished' if finished else f'exit {proc.returncode}'}, next stage to do: {reached or 'none'}"
+              + ("" if "clean" not in record else f", clean: {record['clean']}"))
+        if finished and reached is None:
+            shutil.rmtree(test_out / "sparse", ignore_errors=True)  # keep the last stage exercised
+            (test_out / ".sara" / "map.json").unlink(missing_ok=True)
+    return kills, resumes
+
+
+# ---------------------------------------------------------------------------------------------
+# Phase 3: damaged outputs
+# ---------------------------------------------------------------------------------------------
+
+
+def damage(path: Path, mode: str, rng: random.Random) -> None:
+    if mode == "delete":
+        path.unlink()
+    elif mode == "empty":
+        path.write_bytes(b"")
+    elif mode == "truncate":
+        data = path.read_bytes()
+        path.write_bytes(data[: len(data) // 2])
+    else:
+        path.write_bytes(bytes(rng.getrandbits(8) for _ in range(max(64, min(4096, path.stat().st_size)))))
+
+
+def damage_phase(args, images: Path, extra: list[str], finished: Path, ref_out: Path,
+                 rng: random.Random) -> list[dict]:
+    cases = []
+    scratch = args.out / "damaged"
+    modes = [m.strip() for m in args.damage.split(",") if m.strip()]
+    for pattern in DAMAGED_FILES:
+        for target in sorted(finished.glob(pattern)):
+            rel = target.relative_to(finished).as_posix()
+            for mode in modes:
+                shutil.rmtree(scratch, ignore_errors=True)
+                shutil.copytree(finished, scratch)
+                damage(scratch / rel, mode, rng)
+                before = snapshot(scratch)
+                proc = subprocess.run(sara_cmd(images, scratch, extra), capture_output=True, text=True)
+                clean, lines = clean_stderr(proc.stderr)
+                if proc.returncode == 0:
+                    outcome, ok = "redone", clean and not lines and same_result(ref_out, scratch)
+                elif proc.returncode == 3:
+                    outcome, ok = "refused", clean and len(lines) == 1 and snapshot(scratch) == before
+                else:
+                    outcome, ok = f"exit {proc.returncode}", False
+                case = {"file": rel, "damage": mode, "exit": proc.returncode, "outcome": outcome, "ok": ok,
+                        "message": lines[0] if lines else ""}
+                cases.append(case)
+                print(f"damage {rel:24s} {mode:8s} -> {outcome:8s} {'ok' if ok else 'NOT OK'}"
+                      + (f"  ({lines[0][:110]})" if lines else ""))
+    shutil.rmtree(scratch, ignore_errors=True)
+    return cases
+
+
+# ---------------------------------------------------------------------------------------------
 
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("scene", type=Path, help="a scene folder with images/ (and gt/)")
     parser.add_argument("--kills", type=int, default=10)
+    parser.add_argument("--signals", default="KILL,TERM", help="signals used in turn (default KILL,TERM)")
+    parser.add_argument("--damage", default=",".join(DAMAGE_MODES),
+                        help=f"damage modes, comma-separated (default {','.join(DAMAGE_MODES)}; empty: none)")
     parser.add_argument("--out", type=Path, default=Path("fault-injection"))
-    parser.add_argument("--seed", type=int, default=0, help="seed of the kill times")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the kill times and the garbage")
     parser.add_argument("--pairs", default="sara")
     args = parser.parse_args()
     rng = random.Random(args.seed)
@@ -69,52 +203,56 @@ def main() -> int:
     extra = ["--pairs", args.pairs] + (["--gt", str(gt)] if gt.exists() else [])
     shutil.rmtree(args.out, ignore_errors=True)
     ref_out, test_out = args.out / "reference", args.out / "interrupted"
+    tic = time.perf_counter()
 
     ref, ref_total = run_reference(images, ref_out, extra)
-    stage_time = {s: max(0.5, ref["stages"][s]["time_s"]) for s in STAGES}
+    stage_time = {s: max(0.5, ref["stages"][s].get("time_s", 0.5)) for s in STAGES}
     startup = max(1.0, ref_total - sum(stage_time.values()))  # imports, image checks, evaluation
     print(f"reference run: {ref_total:.1f} s; stages {({k: round(v, 1) for k, v in stage_time.items()})}")
 
-    kills = []
-    for i in range(args.kills):
-        target = next_stage(test_out) or "map"
-        delay = startup * 0.8 + rng.uniform(0.05, 0.95) * stage_time[target]
-        proc = subprocess.Popen(sara_cmd(images, test_out, extra), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-        time.sleep(delay)
-        finished = proc.poll() is not None
-        if not finished:
-            os.kill(proc.pid, signal.SIGKILL)
-        proc.wait()
-        reached = next_stage(test_out)
-        kills.append({"kill": i + 1, "aimed_at": target, "after_s": round(delay, 2), "finished_first": finished,
-                      "stage_when_killed": reached or "done"})
-        print(f"kill {i + 1:2d}: aimed at {target:7s} after {delay:5.1f} s -> "
-              f"{'run had finished' if finished else 'killed'}, next stage to do: {reached or 'none'}")
-        if finished and reached is None:
-            shutil.rmtree(test_out / "sparse", ignore_errors=True)  # keep the last stage exercised
-            (test_out / ".sara" / "map.json").unlink(missing_ok=True)
-
+    kills, resumes = kill_phase(args, images, extra, test_out, stage_time, startup, rng)
     final = subprocess.run(sara_cmd(images, test_out, extra), capture_output=True, text=True)
+    resumes += 1
     if final.returncode != 0:
         print("resumed run failed:\n" + final.stderr)
         return 1
     same_pairs = (ref_out / "pairs.txt").read_text() == (test_out / "pairs.txt").read_text()
     ref_reg, test_reg = registered(ref_out), registered(test_out)
-    result = {"kills": kills, "same_pairs": same_pairs, "registered_reference": len(ref_reg),
-              "registered_resumed": len(test_reg), "same_registered_images": ref_reg == test_reg}
-    ok = same_pairs and ref_reg == test_reg
+    resumed_ok = same_pairs and ref_reg == test_reg
+    result: dict = {"kills": kills, "same_pairs": same_pairs, "registered_reference": len(ref_reg),
+                    "registered_resumed": len(test_reg), "same_registered_images": ref_reg == test_reg}
     if gt.exists():
         test = json.loads((test_out / "run.json").read_text())
         a, b = ref["metrics"]["auc"]["5"], test["metrics"]["auc"]["5"]
         result.update(auc5_reference=a, auc5_resumed=b)
-        ok = ok and abs(a - b) <= 0.01
-    killed = sum(not k["finished_first"] for k in kills)
-    stages_hit = sorted({k["stage_when_killed"] for k in kills if not k["finished_first"]})
-    result.update(num_killed=killed, stages_interrupted=stages_hit, ok=ok)
+        resumed_ok = resumed_ok and abs(a - b) <= 0.01
+
+    damaged = damage_phase(args, images, extra, test_out, ref_out, rng)
+    killed = [k for k in kills if not k["finished_first"]]
+    terms = [k for k in killed if "clean" in k]
+    figures = {
+        "cases": len(kills) + len(damaged),
+        "kills": len(killed),
+        "kills_by_signal": {s: sum(k["signal"] == s for k in killed) for s in sorted({k["signal"] for k in kills})},
+        "sigterm_clean": f"{sum(k['clean'] for k in terms)}/{len(terms)}",
+        "stages_interrupted": sorted({k["stage_when_killed"] for k in killed}),
+        "resumes": resumes + len(damaged),
+        "identical_after_kills": resumed_ok,
+        "damage_cases": len(damaged),
+        "damage_redone_identical": sum(c["ok"] and c["outcome"] == "redone" for c in damaged),
+        "damage_refused_unchanged": sum(c["ok"] and c["outcome"] == "refused" for c in damaged),
+        "damage_not_ok": [f"{c['file']} {c['damage']}: {c['outcome']}" for c in damaged if not c["ok"]],
+        "minutes": round((time.perf_counter() - tic) / 60, 1),
+    }
+    figures["identical_results"] = (int(resumed_ok) + figures["damage_redone_identical"]
+                                    + figures["damage_refused_unchanged"])
+    ok = resumed_ok and all(k["clean"] for k in terms) and not figures["damage_not_ok"]
+    result.update(damage=damaged, figures=figures, ok=ok)
     (args.out / "fault_injection.json").write_text(json.dumps(result, indent=2))
-    print(json.dumps({k: v for k, v in result.items() if k != "kills"}, indent=2))
+    print(json.dumps(figures, indent=2))
     return 0 if ok else 1
 
 
 if __name__ == "__main__":
+    os.environ.setdefault("OMP_NUM_THREADS", "2")
     sys.exit(main())
