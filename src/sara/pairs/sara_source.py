@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import logging
 import time
+from itertools import combinations
 from pathlib import Path
 
 import numpy as np
@@ -32,10 +33,7 @@ def select(ctx: PairContext) -> PairResult:
     conf = ctx.conf
     timings: dict[str, float] = {}
     tic = time.perf_counter()
-    global_path = retrieval.run(conf.retrieval, ctx.features_path, ctx.names, ctx.out_dir,
-                                images_root=ctx.images_root, progress=ctx.progress, seed=conf.seed)
-    names, desc = retrieval.read_global(global_path)
-    edges = retrieval.knn_pairs(desc, conf.retrieval.num_neighbors).astype(np.int64)
+    names, edges = _candidates(ctx)
     timings["retrieval"] = time.perf_counter() - tic
 
     tic = time.perf_counter()
@@ -67,6 +65,19 @@ def select(ctx: PairContext) -> PairResult:
         logger.warning("the selected view graph has %d components of sizes %s: they share no reliable geometry "
                        "and will map to separate models", len(sizes), sizes)
     return PairResult(chosen, info, timings)
+
+
+def _candidates(ctx: PairContext) -> tuple[list[str], np.ndarray]:
+    """Image names and (E, 2) int64 candidate pairs: the kNN of the global descriptors, or every
+    pair when k >= N - 1 (then kNN would return them all: the descriptors are not computed)."""
+    conf = ctx.conf
+    if conf.retrieval.num_neighbors >= len(ctx.names) - 1:
+        names = list(ctx.names)
+        return names, np.array(list(combinations(range(len(names)), 2)), dtype=np.int64).reshape(-1, 2)
+    global_path = retrieval.run(conf.retrieval, ctx.features_path, ctx.names, ctx.out_dir,
+                                images_root=ctx.images_root, progress=ctx.progress, seed=conf.seed)
+    names, desc = retrieval.read_global(global_path)
+    return names, retrieval.knn_pairs(desc, conf.retrieval.num_neighbors).astype(np.int64)
 
 
 def after_mapping(ctx: PairContext, pairs: list[Pair], model_dir: Path) -> list[Pair]:
