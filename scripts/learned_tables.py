@@ -1,0 +1,115 @@
+"""The compact per-scene tables of docs/BENCHMARKS.md's learned-feature section.
+
+Reads the `results.csv` of learned `sara bench` runs (scripts/learned_bench.sh) and, for the SIFT
+rows, the Markdown tables already in docs/BENCHMARKS.md (the SIFT run; nothing re-measured), and
+prints one table per scene: features x method, with pairs, pairs per image, matching time and its
+per-pair cost, AUC@1/5/10 and the ratios against exhaustive with the same features.
+
+    python scripts/learned_tables.py /work/bench_learned/*/results.csv [--sift docs/BENCHMARKS.md]
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import re
+from pathlib import Path
+
+METHODS = ("exhaustive", "retrieval", "sara")
+FEATURES = {"sift": "SIFT", "aliked": "ALIKED+LightGlue", "disk": "DISK+LightGlue", "xfeat": "XFeat+LighterGlue"}
+SCENES = ("bm-moldGoldCape", "strecha-fountain-P11", "middlebury-templeSparseRing", "strecha-Herz-Jesus-P25",
+          "strecha-castle-P30", "middlebury-templeRing")
+
+
+def num(text: str | None) -> float | None:
+    try:
+        return float(text) if text not in (None, "", "-") else None
+    except ValueError:
+        return None
+
+
+def sift_rows(doc: Path) -> list[dict]:
+    """Rows of the SIFT tables in docs/BENCHMARKS.md (the headline and the five smaller scenes)."""
+    rows, scene, header = [], None, None
+    for line in doc.read_text().splitlines():
+        m = re.match(r"## (?:Headline: )?([\w-]+) \((\d+) images", line)
+        if m:
+            scene, header = (m.group(1), int(m.group(2))), None
+            continue
+        if line.startswith("## "):
+            scene = None if "Headline" not in line else scene
+        if scene is None or not line.startswith("|") or line.startswith("|---"):
+            continue
+        cells = [c.strip() for c in line.strip("|").split("|")]
+        if cells[0] == "Method":
+            header = cells
+            continue
+        if header and cells[0] in METHODS and len(cells) == len(header):
+            r = dict(zip(header, cells))
+            rows.append({"scene": scene[0], "num_images": scene[1], "features": "sift", "method": cells[0],
+                         "registered_pct": num(r["Reg. %"]), "pairs": num(r["Pairs"]), "match_s": num(r["Match (s)"]),
+                         "auc@1": num(r["AUC@1"]), "auc@5": num(r["AUC@5"]), "auc@10": num(r["AUC@10"]),
+                         "num_components": None, "num_registered": None})
+    headline = next((i for i, l in enumerate(doc.read_text().splitlines()) if l.startswith("## Headline")), None)
+    if headline is not None:  # the headline section names the scene as "bm-moldGoldCape (119 images, ...)"
+        for r in rows:
+            if r["scene"] == "bm-moldGoldCape":
+                r["num_images"] = 119
+    return rows
+
+
+def learned_rows(path: Path) -> list[dict]:
+    features = next((k for k in FEATURES if path.parent.name.startswith(k)), path.parent.name)
+    rows = []
+    with path.open() as f:
+        for r in csv.DictReader(f):
+            if r.get("error"):
+                continue
+            rows.append({"scene": r["scene"], "num_images": int(r["num_images"]), "features": features,
+                         "method": r["method"], "registered_pct": num(r["registered_pct"]),
+                         "num_registered": num(r["num_registered"]), "num_components": num(r["num_components"]),
+                         "pairs": num(r["pairs"]), "match_s": num(r["match_s"]), "auc@1": num(r["auc@1"]),
+                         "auc@5": num(r["auc@5"]), "auc@10": num(r["auc@10"])})
+    return rows
+
+
+def fmt(value: float | None, spec: str) -> str:
+    return "-" if value is None else format(value, spec)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("results", nargs="+", type=Path)
+    parser.add_argument("--sift", type=Path, default=Path(__file__).resolve().parents[1] / "docs" / "BENCHMARKS.md")
+    args = parser.parse_args()
+    rows = sift_rows(args.sift) if args.sift and args.sift.exists() else []
+    for path in args.results:
+        rows += learned_rows(path)
+    for scene in SCENES:
+        mine = [r for r in rows if r["scene"] == scene]
+        if not any(r["features"] != "sift" for r in mine):
+            continue
+        n = mine[0]["num_images"]
+        print(f"\n#### {scene} ({n} images, {n * (n - 1) // 2} exhaustive pairs)\n")
+        print("| Features | Method | Reg. % | Models | Pairs | Pairs / N | Match (s) | s / pair | AUC@1 | AUC@5 "
+              "| AUC@10 | Pairs / exh. | Match time / exh. |")
+        print("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+        for feat in FEATURES:
+            group = {r["method"]: r for r in mine if r["features"] == feat}
+            ref = group.get("exhaustive")
+            for method in METHODS:
+                r = group.get(method)
+                if r is None:
+                    continue
+                pairs, match_s = r["pairs"], r["match_s"]
+                ratio_p = pairs / ref["pairs"] if ref and pairs else None
+                ratio_t = match_s / ref["match_s"] if ref and match_s and ref["match_s"] else None
+                print(f"| {FEATURES[feat]} | {method} | {fmt(r['registered_pct'], '.1f')} "
+                      f"| {fmt(r['num_components'], '.0f')} | {fmt(pairs, '.0f')} | {fmt(pairs / n if pairs else None, '.2f')} "
+                      f"| {fmt(match_s, '.1f')} | {fmt(match_s / pairs if pairs and match_s else None, '.2f')} "
+                      f"| {fmt(r['auc@1'], '.3f')} | {fmt(r['auc@5'], '.3f')} | {fmt(r['auc@10'], '.3f')} "
+                      f"| {fmt(ratio_p, '.3f')} | {fmt(ratio_t, '.3f')} |")
+
+
+if __name__ == "__main__":
+    main()
