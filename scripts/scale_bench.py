@@ -87,6 +87,29 @@ def settings_key(world_key: str, sara_overrides: dict[str, str], args: argparse.
 # ---------------------------------------------------------------------------------------------
 
 
+def tree_usage(pid: int) -> tuple[int, float]:
+    """Resident bytes and CPU seconds (user + system, ended children included) of a process and
+    all its live descendants (e.g. an executor's workers)."""
+    tick = os.sysconf("SC_CLK_TCK")
+    rss, cpu, todo, seen = 0, 0.0, [pid], set()
+    while todo:
+        p = todo.pop()
+        if p in seen:
+            continue
+        seen.add(p)
+        rss += read_rss_bytes(p)
+        try:
+            with open(f"/proc/{p}/stat", encoding="ascii") as f:
+                fields = f.read().rsplit(")", 1)[1].split()
+            cpu += sum(int(v) for v in fields[11:15]) / tick  # utime stime cutime cstime
+            for tid in os.listdir(f"/proc/{p}/task"):
+                with open(f"/proc/{p}/task/{tid}/children", encoding="ascii") as f:
+                    todo += [int(c) for c in f.read().split()]
+        except (OSError, ValueError, IndexError):
+            pass
+    return rss, cpu
+
+
 def read_rss_bytes(pid: int | str = "self") -> int:
     try:
         with open(f"/proc/{pid}/status", encoding="ascii") as f:
@@ -99,7 +122,8 @@ def read_rss_bytes(pid: int | str = "self") -> int:
 
 
 class RssSampler(threading.Thread):
-    """Samples this process's resident memory and CPU time every RSS_SAMPLE_S s: [(t, bytes, cpu_s)]."""
+    """Samples resident memory and CPU time of this process and its workers every RSS_SAMPLE_S s:
+    [(t, bytes, cpu_s)]."""
 
     def __init__(self, start: float):
         super().__init__(daemon=True)
@@ -109,8 +133,8 @@ class RssSampler(threading.Thread):
         self.on_sample = None
 
     def _sample(self) -> None:
-        cpu = os.times()
-        self.samples.append((time.perf_counter() - self.t0, read_rss_bytes(), cpu.user + cpu.system))
+        rss, cpu = tree_usage(os.getpid())
+        self.samples.append((time.perf_counter() - self.t0, rss, cpu))
 
     def run(self) -> None:
         while not self._halt.is_set():
@@ -135,7 +159,15 @@ def child_main(world_dir: Path, run_dir: Path, result_path: Path, sara_overrides
 
     conf = make_config(overrides=sara_overrides)
     run_dir.mkdir(parents=True, exist_ok=True)
-    ctx = selection_context(conf, world_dir, run_dir, progress=True)
+    executor = None
+    try:  # a sara with executors: make one as the pipeline does (its start-up is not timed)
+        from sara.execute import make_executor
+    except ImportError:
+        make_executor = None
+    if make_executor is not None and hasattr(conf, "execute"):
+        executor = make_executor(conf.execute.executor, conf.execute.workers, conf.execute.ray_address)
+    extra_args = {"executor": executor} if executor is not None else {}  # older sara.scale: no executor
+    ctx = selection_context(conf, world_dir, run_dir, progress=True, **extra_args)
     source = get_source(conf.pairs.method)
     rss0 = read_rss_bytes()
     tic = time.perf_counter()
@@ -176,6 +208,8 @@ def child_main(world_dir: Path, run_dir: Path, result_path: Path, sara_overrides
     else:
         result = source(ctx)
     total = time.perf_counter() - tic
+    if executor is not None:
+        executor.close()
     sampler.stop()
     if profile == "tracemalloc":
         import tracemalloc
@@ -192,6 +226,7 @@ def child_main(world_dir: Path, run_dir: Path, result_path: Path, sara_overrides
         "info": result.info,
         "num_selected": len(result.pairs),
         "rss_start_bytes": rss0,
+        "workers": getattr(executor, "workers", 1),
         "rss_samples": sampler.samples,
         "ru_maxrss_self_bytes": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024,
         **extra,
@@ -437,7 +472,8 @@ def measure(args: argparse.Namespace, n: int) -> dict[str, Any] | None:
             "selection_s": child["selection_s"],
             "timings_s": timings,
             "time_per_image_ms": 1e3 * child["selection_s"] / n,
-            "peak_rss_gib": run["peak_rss_bytes"] / GIB,
+            "peak_rss_gib": max(run["peak_rss_bytes"], max((m for _, m, _ in child["rss_samples"]), default=0)) / GIB,
+            "workers": child.get("workers", 1),
             "stage_peak_rss_gib": stage_peaks(child)[0],
             "stage_cpu_s": stage_peaks(child)[1],
             "cpu_s": run["cpu_user_s"] + run["cpu_sys_s"],

@@ -706,11 +706,13 @@ def image_set(out_dir: Path) -> ImageSet:
     return ImageSet(root=out_dir / IMAGES_DIR, names=names, sizes={n: size for n in names})
 
 
-def selection_context(conf: Any, out_dir: Path, run_dir: Path, *, progress: bool = True) -> Any:
+def selection_context(conf: Any, out_dir: Path, run_dir: Path, *, progress: bool = True,
+                      executor: Any = None) -> Any:
     """The `sara.pairs.PairContext` the pipeline would build to select pairs on this world.
 
     The selection writes into `run_dir` (global descriptors, scores.csv), which gets a copy of the
     world's database (a link when it holds features), so runs never share cached results.
+    `executor`: where the work runs, for a sara that has executors (None: its default).
     """
     from ..pairs import PairContext
 
@@ -729,12 +731,15 @@ def selection_context(conf: Any, out_dir: Path, run_dir: Path, *, progress: bool
     except ImportError:
         pair_context = None
     if pair_context is not None:
-        try:
-            return pair_context(conf, images, feats, run_dir, progress=progress)
-        except TypeError:  # another signature: build the context from its fields
-            pass
+        for kwargs in ({"executor": executor, "progress": progress}, {"progress": progress}):
+            if executor is None:
+                kwargs.pop("executor", None)
+            try:
+                return pair_context(conf, images, feats, run_dir, **kwargs)
+            except TypeError:  # another signature: try without the executor, then from the fields
+                continue
     values = {"names": images.names, "images_root": images.root, "features_path": feats, "db_path": db,
-              "out_dir": run_dir, "conf": conf, "progress": progress}
+              "out_dir": run_dir, "conf": conf, "progress": progress, "executor": executor}
     fields = {f.name for f in dataclasses.fields(PairContext)}
     return PairContext(**{k: v for k, v in values.items() if k in fields})
 
