@@ -20,6 +20,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from sara import hloc
+from sara.config import make_config
 
 DESCRIPTOR_DIM = 256  # SuperPoint's
 NUM_DISTRACTORS = 150
@@ -100,7 +101,9 @@ def test_hloc_round_trip(synthetic_scene, tmp_path: Path):
     features = tmp_path / "feats-superpoint-n4096-r1024.h5"
     write_superpoint_like(gt, features)
 
-    pairs_path = hloc.select_pairs(features, tmp_path / "pairs-sara.txt", progress=False)
+    # k = 5 < N - 1: SARA computes global descriptors (with k >= N - 1 every pair is a candidate anyway)
+    conf = make_config("sift-offline", {"retrieval.num_neighbors": 5})
+    pairs_path = hloc.select_pairs(features, tmp_path / "pairs-sara.txt", conf=conf, progress=False)
     pairs = parse_retrieval(pairs_path)
     names = sorted(p.name for p in images.iterdir())
     num_pairs = sum(len(r) for r in pairs.values())
