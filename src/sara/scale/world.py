@@ -13,8 +13,10 @@ The world
     images so that each street is walked ``visits_per_street`` times on average. Facades carry
     3D points (``point_density`` per m^2, heights 0 to the block's height), each with a physical
     size (log-normal). A share ``repeat_fraction`` of a facade's points repeat one of a few
-    descriptors of the facade's style (windows), and styles repeat across the city: repeated
-    structure within an image and look-alike streets across the city, as in real streets.
+    descriptors of the facade's style (windows), each deviating from it by ``repeat_jitter``,
+    and styles repeat across the city: repeated structure within an image and look-alike
+    streets across the city, as in real streets (``repeat_jitter = 0``: identical copies, a
+    harder world on which the scorer's top-b-by-similarity matches break down).
 
 The walk
     From a corner, the camera goes from crossing to crossing, always to the least-walked street
