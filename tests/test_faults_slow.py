@@ -102,3 +102,31 @@ def test_lost_database_is_extracted_again(out, synthetic_scene, finished):
     proc = sara_process("run", images, out, "-q")
     assert_ok(proc.returncode, proc.stderr)
     assert registered(out) == registered(finished)
+
+
+def test_killed_rematch_with_other_settings_never_mixes_matches(out, synthetic_scene, finished):
+    """Killed while matching with other settings (in the copy), then run with the original settings:
+    the database keeps exactly the original matches, and the model is the original one."""
+    from sara.match import matches_digest
+
+    images = synthetic_scene[0]
+    cmd = ["run", images, out, "-q", "-s", "match.max_ratio=0.7", "-s", "match.chunk_size=1"]
+    rc, _ = interrupt_when(cmd, out / ".sara" / "match_chunk.txt", signal.SIGKILL)
+    if rc == 0:
+        pytest.skip("the run finished before the kill")
+    proc = sara_process("run", images, out, "-q")
+    assert_ok(proc.returncode, proc.stderr)
+    assert matches_digest(out / "database.db") == matches_digest(finished / "database.db")
+    assert registered(out) == registered(finished)
+
+
+def test_overwrite_mends_a_damaged_database(out, synthetic_scene, finished):
+    """The fix the message names (`--overwrite`) works: extraction and matching are redone."""
+    images = synthetic_scene[0]
+    data = (out / "database.db").read_bytes()
+    (out / "database.db").write_bytes(data[: len(data) // 2])
+    proc = sara_process("run", images, out, "-q")
+    assert_error(proc.returncode, proc.stderr, 3, "database.db is damaged", "--overwrite")
+    proc = sara_process("run", images, out, "-q", "--overwrite")
+    assert_ok(proc.returncode, proc.stderr)
+    assert registered(out) == registered(finished)

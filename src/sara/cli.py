@@ -314,7 +314,7 @@ def main(argv: list[str] | None = None) -> int:
         commands[args.command](args)
     except KeyboardInterrupt as exc:
         signum = exc.signum if isinstance(exc, Terminated) else signal.SIGINT
-        for other in previous:  # a second signal while exiting changes nothing
+        for other in (signal.SIGINT, *previous):  # a second signal while exiting changes nothing
             signal.signal(other, signal.SIG_IGN)
         previous = {}
         name = signal.Signals(signum).name

@@ -33,7 +33,7 @@ OLD = "sparse.old"
 
 def run(conf: MapConfig, db_path: Path, images_root: Path, out_dir: Path, *, seed: int = 0,
         upstream_key: str = "", progress: bool = True, min_num_inliers: int = 15,
-        commit: Callable[[], None] | None = None) -> Path:
+        commit: Callable[[], None] | None = None, overwrite: bool = False) -> Path:
     """Map the matched database into `out_dir/sparse/N`; returns `sparse/` (component sizes and the
     time taken go into the stage record).
 
@@ -43,7 +43,7 @@ def run(conf: MapConfig, db_path: Path, images_root: Path, out_dir: Path, *, see
     out_dir = Path(out_dir)
     sparse = out_dir / "sparse"
     key = state_key(conf, seed, upstream_key)
-    if records.is_done(out_dir, STAGE, key) and _model_intact(out_dir, sparse):
+    if not overwrite and records.is_done(out_dir, STAGE, key) and _model_intact(out_dir, sparse):
         logger.info("map: model up to date, skipping")
         if commit is not None:
             commit()

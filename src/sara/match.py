@@ -35,7 +35,7 @@ BYTES_PER_PAIR = 64 * 1024
 
 def run(conf: MatchConfig, pairs_path: Path, db_path: Path, out_dir: Path, *, features_path: Path,
         features_backend: str = "sift", executor: Executor | None = None, progress: bool = True,
-        beside: bool = False) -> Path:
+        beside: bool = False, overwrite: bool = False) -> Path:
     """Match every pair of `pairs_path` into the database; returns the database that holds the
     matches (counts and the time taken go into the stage record).
 
@@ -59,33 +59,27 @@ def run(conf: MatchConfig, pairs_path: Path, db_path: Path, out_dir: Path, *, fe
     matcher_name = resolve_name(conf, features_backend)
     key = fingerprint({"pairs": pairs, "conf": {**conf.__dict__, "backend": matcher_name},
                        "features": Path(features_path).name, "keypoints": before["keypoints_digest"]})
-    ready = _finished_database(out_dir, key, db_path, next_db, before)
+    ready = None if overwrite else _finished_database(out_dir, key, db_path, next_db, before)
     if ready is not None:
         logger.info("match: %d pairs already matched, skipping", len(pairs))
         return ready
     matcher = make_matcher(conf, features_backend)  # loads weights: fails here, before any work
     conf_key = fingerprint({**conf.__dict__, "backend": matcher_name, "features": Path(features_path).name})
-    same_settings = records.is_done(out_dir, CONF_RECORD, conf_key)
-    kept = {stage: records.read_record(out_dir, stage) for stage in (STAGE, CONF_RECORD, PROGRESS_RECORD)}
-    work = _work_database(db_path, next_db, out_dir, key, beside=beside and before["num_matched_pairs"] > 0
-                          and not (same_settings and _only_additions(db_path, pairs, names)))
-    if not same_settings:
-        _clear_matches(work)  # a fresh start, or matches made with other settings
-        records.mark_done(out_dir, CONF_RECORD, conf_key)
-    else:
-        _remove_other_pairs(work, pairs, names)  # keep the matches that are still wanted
+    same_settings = not overwrite and records.is_done(out_dir, CONF_RECORD, conf_key)  # of `db_path`'s matches
+    kept = {stage: records.read_record(out_dir, stage) for stage in (STAGE, PROGRESS_RECORD)}
+    work = _work_database(db_path, next_db, out_dir, key, conf_key, pairs, names, same_settings=same_settings,
+                          beside=beside and before["num_matched_pairs"] > 0)
+    _remove_other_pairs(work, pairs, names)  # keep the matches that are still wanted
     records.mark_started(out_dir, STAGE, key)
     elapsed, num_done = _match_all(conf, matcher, features_backend, features_path, pairs, names, work, out_dir, key,
-                                   executor, progress)
+                                   conf_key, executor, progress)
     info = {"num_pairs": len(pairs), "num_matched_now": num_done, "time_s": elapsed, "matcher": matcher.name,
             **verification_stats(work, conf.min_num_inliers)}
     if info["num_verified_pairs"] == 0:
         if work != Path(db_path):
             colmap.remove_database(work)
-            for stage, record in kept.items():  # they describe the database that is kept
-                records.restore(out_dir, stage, record)
-        else:
-            records.restore(out_dir, STAGE, kept[STAGE])
+        for stage, record in kept.items():  # they describe the database that is kept
+            records.restore(out_dir, stage, record)
         raise NoResultError(
             f"none of the {len(pairs)} pairs has {conf.min_num_inliers} or more verified matches "
             f"(match.min_num_inliers): the images do not overlap, or the pairs are wrong"
@@ -98,10 +92,15 @@ def run(conf: MatchConfig, pairs_path: Path, db_path: Path, out_dir: Path, *, fe
 DB_NAME = "database.db"
 
 
-def commit(work: Path, db_path: Path) -> None:
-    """Move the database returned by `run` onto `db_path` (nothing to do when it is `db_path`)."""
-    if Path(work) != Path(db_path):
-        colmap.replace_database(work, db_path)
+def commit(work: Path, db_path: Path, out_dir: Path) -> None:
+    """Move the database returned by `run` onto `db_path` (nothing to do when it is `db_path`);
+    the settings its matches were made with become those of `db_path`."""
+    if Path(work) == Path(db_path):
+        return
+    conf_key = (records.read_record(out_dir, PROGRESS_RECORD) or {}).get("info", {}).get("conf_key")
+    colmap.replace_database(work, db_path)
+    if conf_key:
+        records.mark_done(out_dir, CONF_RECORD, conf_key)
 
 
 def matches_digest(db_path: Path) -> dict:
@@ -141,14 +140,15 @@ def _finished_database(out_dir: Path, key: str, db_path: Path, next_db: Path, su
     return None
 
 
-def _work_database(db_path: Path, next_db: Path, out_dir: Path, key: str, *, beside: bool) -> Path:
-    """`db_path` itself, or with `beside` a copy in `.sara/` (resumed when a killed run of the
-    same pairs left one that holds the same images and keypoints)."""
-    if not beside:
-        colmap.remove_database(next_db)
-        return Path(db_path)
-    progress_record = records.read_record(out_dir, PROGRESS_RECORD) or {}
-    if next_db.exists() and progress_record.get("key") == key and progress_record.get("info", {}).get("beside"):
+def _work_database(db_path: Path, next_db: Path, out_dir: Path, key: str, conf_key: str, pairs: list[Pair],
+                   names: dict[str, int], *, same_settings: bool, beside: bool) -> Path:
+    """Where to match: `db_path` itself when nothing in it can be lost (no matches, or only
+    additions made with the same settings), else with `beside` a copy in `.sara/` (resumed when a
+    killed run of the same pairs and settings left one). Matches made with other settings are
+    cleared first."""
+    progress = records.read_record(out_dir, PROGRESS_RECORD) or {}
+    info = progress.get("info", {})
+    if beside and next_db.exists() and progress.get("key") == key and info.get("conf_key") == conf_key:
         try:
             same = (colmap.database_summary(next_db) or {}).get("keypoints_digest") == \
                 (colmap.database_summary(db_path) or {}).get("keypoints_digest")
@@ -157,9 +157,16 @@ def _work_database(db_path: Path, next_db: Path, out_dir: Path, key: str, *, bes
         if same:
             return next_db
     colmap.remove_database(next_db)
+    if not beside or (same_settings and _only_additions(db_path, pairs, names)):
+        if not same_settings:
+            _clear_matches(db_path)  # a fresh start, or matches made with other settings
+            records.mark_done(out_dir, CONF_RECORD, conf_key)
+        return Path(db_path)
     ensure_free_space(out_dir, Path(db_path).stat().st_size)
     colmap.copy_database(db_path, next_db)
-    records.mark_done(out_dir, PROGRESS_RECORD, key, {"time_s": 0.0, "beside": True})
+    if not same_settings:
+        _clear_matches(next_db)
+    records.mark_done(out_dir, PROGRESS_RECORD, key, {"time_s": 0.0, "beside": True, "conf_key": conf_key})
     return next_db
 
 
@@ -171,7 +178,7 @@ def _only_additions(db_path: Path, pairs: list[Pair], ids: dict[str, int]) -> bo
 
 
 def _match_all(conf: MatchConfig, matcher: Matcher, features_backend: str, features_path: Path, pairs: list[Pair],
-               names: dict[str, int], work: Path, out_dir: Path, key: str, executor: Executor | None,
+               names: dict[str, int], work: Path, out_dir: Path, key: str, conf_key: str, executor: Executor | None,
                progress: bool) -> tuple[float, int]:
     """Match and verify the pairs not yet in `work`, chunk by chunk; returns (seconds, pairs done)."""
     todo = _unmatched(work, pairs, names)
@@ -200,8 +207,8 @@ def _match_all(conf: MatchConfig, matcher: Matcher, features_backend: str, featu
                 colmap.write_matches(work, dict(zip(renamed, matches)))
                 colmap.verify_pairs(work, chunk_path, min_num_inliers=conf.min_num_inliers)
             bar.update(len(chunk))
-            records.mark_done(out_dir, PROGRESS_RECORD, key,
-                              {"time_s": earlier_s + time.perf_counter() - tic, "beside": beside})
+            records.mark_done(out_dir, PROGRESS_RECORD, key, {"time_s": earlier_s + time.perf_counter() - tic,
+                                                              "beside": beside, "conf_key": conf_key})
     chunk_path.unlink(missing_ok=True)
     return earlier_s + time.perf_counter() - tic, len(todo)
 

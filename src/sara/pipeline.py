@@ -281,15 +281,17 @@ def _pairs_intact(out_dir: Path) -> bool:
 
 
 def match_pairs(conf: PipelineConfig, pairs_path: Path, features_path: Path, out_dir: Path, *,
-                executor: Executor | None = None, progress: bool = True, beside: bool = False) -> Path:
+                executor: Executor | None = None, progress: bool = True, beside: bool = False,
+                overwrite: bool = False) -> Path:
     """Stage `match` with this run's matcher; returns the database that holds the matches (with
     `beside`, possibly a copy to `match.commit` once mapping succeeded)."""
     return match.run(conf.match, pairs_path, out_dir / extract.DB_NAME, out_dir, features_path=features_path,
-                     features_backend=conf.extract.backend, executor=executor, progress=progress, beside=beside)
+                     features_backend=conf.extract.backend, executor=executor, progress=progress, beside=beside,
+                     overwrite=overwrite)
 
 
 def map_model(conf: PipelineConfig, images_root: Path, out_dir: Path, *, db_path: Path | None = None,
-              progress: bool = True) -> Path:
+              progress: bool = True, overwrite: bool = False) -> Path:
     """Stage `map` on the matches of `db_path` (default the output's database; a copy made by the
     match stage is moved into place just before the new model); returns `sparse/`."""
     db = out_dir / extract.DB_NAME
@@ -297,7 +299,7 @@ def map_model(conf: PipelineConfig, images_root: Path, out_dir: Path, *, db_path
     upstream = fingerprint(match.matches_digest(work))
     return mapping.run(conf.map, work, images_root, out_dir, seed=conf.seed, upstream_key=upstream,
                        progress=progress, min_num_inliers=conf.match.min_num_inliers,
-                       commit=lambda: match.commit(work, db))
+                       commit=lambda: match.commit(work, db, out_dir), overwrite=overwrite)
 
 
 def after_mapping_rounds(conf: PipelineConfig, images: ImageSet, features_path: Path, out_dir: Path, *,
@@ -356,7 +358,7 @@ def _map_round(conf: PipelineConfig, images_root: Path, out_dir: Path, work: Pat
     db = out_dir / extract.DB_NAME
 
     def commit() -> None:
-        match.commit(work, db)
+        match.commit(work, db, out_dir)
         _add_to_pairs_record(out_dir, num_added, file_digest(staged))
         os.replace(staged, out_dir / PAIRS_NAME)
 
@@ -453,15 +455,17 @@ def _run_stages(conf: PipelineConfig, images: ImageSet, images_root: Path, out_d
         report.save()  # `sara map OUT` finds the images through run.json
     if stop_after == "extract":
         return report
-    pairs_path = select_pairs(conf, images, features, out_dir, executor=executor, progress=progress)
+    pairs_path = select_pairs(conf, images, features, out_dir, executor=executor, overwrite=overwrite,
+                              progress=progress)
     report.stages["pairs"] = records.done_info(out_dir, PAIRS_STAGE)
     if stop_after == "pairs":
         report.save()
         return report
-    work = match_pairs(conf, pairs_path, features, out_dir, executor=executor, progress=progress, beside=True)
+    work = match_pairs(conf, pairs_path, features, out_dir, executor=executor, progress=progress, beside=True,
+                       overwrite=overwrite)
     report.stages["match"] = records.done_info(out_dir, match.STAGE)
     try:
-        map_model(conf, images.root, out_dir, db_path=work, progress=progress)
+        map_model(conf, images.root, out_dir, db_path=work, progress=progress, overwrite=overwrite)
     except NoResultError:
         if work != out_dir / extract.DB_NAME:
             colmap.remove_database(work)  # the previous matches stay with the previous model
@@ -554,7 +558,7 @@ def match_only(conf: PipelineConfig, out_dir: Path, pairs_path: Path | None = No
         colmap.send_log_to(out_dir / "logs", verbose=verbose_colmap)
         features = out_dir / features_file_name(conf.extract)
         work = match_pairs(conf, pairs_path, features, out_dir, progress=progress, beside=True)
-        match.commit(work, db)
+        match.commit(work, db, out_dir)
     return records.done_info(out_dir, match.STAGE)
 
 
