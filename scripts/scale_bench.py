@@ -87,17 +87,20 @@ def settings_key(world_key: str, sara_overrides: dict[str, str], args: argparse.
 # ---------------------------------------------------------------------------------------------
 
 
-def tree_usage(pid: int) -> tuple[int, float]:
-    """Resident bytes and CPU seconds (user + system, ended children included) of a process and
-    all its live descendants (e.g. an executor's workers)."""
+def tree_usage(pid: int) -> tuple[int, float, int, int]:
+    """Resident bytes, CPU seconds (user + system, ended children included) and proportional set
+    size (PSS: pages shared between processes, such as a memory-mapped store, counted once) of a
+    process and all its live descendants (e.g. an executor's workers), and how many they are."""
     tick = os.sysconf("SC_CLK_TCK")
-    rss, cpu, todo, seen = 0, 0.0, [pid], set()
+    rss, cpu, pss, todo, seen = 0, 0.0, 0, [pid], set()
     while todo:
         p = todo.pop()
         if p in seen:
             continue
         seen.add(p)
-        rss += read_rss_bytes(p)
+        one = read_rss_bytes(p)
+        rss += one
+        pss += read_pss_bytes(p) or one
         try:
             with open(f"/proc/{p}/stat", encoding="ascii") as f:
                 fields = f.read().rsplit(")", 1)[1].split()
@@ -107,7 +110,18 @@ def tree_usage(pid: int) -> tuple[int, float]:
                     todo += [int(c) for c in f.read().split()]
         except (OSError, ValueError, IndexError):
             pass
-    return rss, cpu
+    return rss, cpu, pss, len(seen)
+
+
+def read_pss_bytes(pid: int | str) -> int:
+    try:
+        with open(f"/proc/{pid}/smaps_rollup", encoding="ascii") as f:
+            for line in f:
+                if line.startswith("Pss:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return 0
 
 
 def read_rss_bytes(pid: int | str = "self") -> int:
@@ -122,19 +136,19 @@ def read_rss_bytes(pid: int | str = "self") -> int:
 
 
 class RssSampler(threading.Thread):
-    """Samples resident memory and CPU time of this process and its workers every RSS_SAMPLE_S s:
-    [(t, bytes, cpu_s)]."""
+    """Samples memory and CPU time of this process and its workers every RSS_SAMPLE_S s:
+    [(t, rss bytes, cpu_s, pss bytes, processes)]."""
 
     def __init__(self, start: float):
         super().__init__(daemon=True)
         self.t0 = start
-        self.samples: list[tuple[float, int, float]] = []
+        self.samples: list[tuple[float, int, float, int, int]] = []
         self._halt = threading.Event()
         self.on_sample = None
 
     def _sample(self) -> None:
-        rss, cpu = tree_usage(os.getpid())
-        self.samples.append((time.perf_counter() - self.t0, rss, cpu))
+        rss, cpu, pss, procs = tree_usage(os.getpid())
+        self.samples.append((time.perf_counter() - self.t0, rss, cpu, pss, procs))
 
     def run(self) -> None:
         while not self._halt.is_set():
@@ -410,6 +424,11 @@ def evaluate(world_dir: Path, run_dir: Path, min_common: int) -> dict[str, Any]:
     return out
 
 
+def _memory(sample: list) -> int:
+    """A sample's memory: with workers, the PSS of the process tree (shared pages once); else RSS."""
+    return sample[3] if len(sample) > 4 and sample[4] > 1 and sample[3] else sample[1]
+
+
 def stage_peaks(child: dict[str, Any]) -> tuple[dict[str, float], dict[str, float]]:
     """Per step (in the order of timings_s): peak sampled RSS (GiB) in its time window, and the
     CPU seconds (user + system, all threads) spent in it."""
@@ -417,11 +436,11 @@ def stage_peaks(child: dict[str, Any]) -> tuple[dict[str, float], dict[str, floa
     peaks, cpu, start = {}, {}, 0.0
 
     def cpu_at(t: float) -> float:
-        before = [c for s, _, c in samples if s <= t]
+        before = [sample[2] for sample in samples if sample[0] <= t]
         return before[-1] if before else (samples[0][2] if samples else 0.0)
 
     for stage, seconds in child.get("timings_s", {}).items():
-        window = [rss for t, rss, _ in samples if start <= t <= start + seconds + RSS_SAMPLE_S]
+        window = [_memory(sample) for sample in samples if start <= sample[0] <= start + seconds + RSS_SAMPLE_S]
         peaks[stage] = max(window) / GIB if window else 0.0
         cpu[stage] = cpu_at(start + seconds) - cpu_at(start)
         start += seconds
@@ -472,7 +491,8 @@ def measure(args: argparse.Namespace, n: int) -> dict[str, Any] | None:
             "selection_s": child["selection_s"],
             "timings_s": timings,
             "time_per_image_ms": 1e3 * child["selection_s"] / n,
-            "peak_rss_gib": max(run["peak_rss_bytes"], max((m for _, m, _ in child["rss_samples"]), default=0)) / GIB,
+            # the biggest process (ru_maxrss), or all of them together (sampled, shared pages once)
+            "peak_rss_gib": max(run["peak_rss_bytes"], max(map(_memory, child["rss_samples"]), default=0)) / GIB,
             "workers": child.get("workers", 1),
             "stage_peak_rss_gib": stage_peaks(child)[0],
             "stage_cpu_s": stage_peaks(child)[1],
