@@ -6,8 +6,8 @@ resume ends with the result of an uninterrupted run, or refuses in one line with
 
 1. A reference run, uninterrupted.
 2. Kills: `sara run` is stopped with SIGKILL and SIGTERM in turn (`--signals`) at a random moment
-   inside each stage in turn (extract, pairs, match, map; the moment is drawn within the stage's
-   duration in the reference run), then resumed. A SIGTERM must end in exit 143 with one
+   inside the next unfinished stage (extract, pairs, match, map: once the stage's work has begun,
+   within its duration in the reference run), then resumed. A SIGTERM must end in exit 143 with one
    `sara: error:` line and no native stack dump. The last resume must give the reference's pairs
    and registered images (and, with a ground truth, AUC@5 within 0.01).
 3. Damage: for each output file (features, global descriptors, scores, pairs, database, model
@@ -104,18 +104,35 @@ def same_result(ref_out: Path, out: Path) -> bool:
 # ---------------------------------------------------------------------------------------------
 
 
+#: what appears in the output folder when a stage starts its work (None: time from the start)
+STAGE_MARKERS = {"extract": None, "pairs": ".sara/pairs.next", "match": ".sara/match_chunk.txt",
+                 "map": ".sara/sparse.partial"}
+
+
 def kill_phase(args, images: Path, extra: list[str], test_out: Path, stage_time: dict, startup: float,
                rng: random.Random) -> tuple[list[dict], int]:
+    """Kill each run at a random moment inside the next unfinished stage: after its marker appears
+    (the stage's own work has begun), within the stage's duration in the reference run. After two
+    kills in one stage, the run is let through it and stopped in the next one."""
     kills, resumes = [], 0
     signals = [getattr(signal, f"SIG{name.strip().upper()}") for name in args.signals.split(",")]
     for i in range(args.kills):
         signum = signals[i % len(signals)]
         target = next_stage(test_out) or "map"
-        delay = startup * 0.8 + rng.uniform(0.05, 0.95) * stage_time[target]
+        if len(kills) >= 2 and all(k["aimed_at"] == target and not k["finished_first"] for k in kills[-2:]):
+            target = STAGES[min(STAGES.index(target) + 1, len(STAGES) - 1)]  # let it finish, stop in the next
+        marker = STAGE_MARKERS[target]
+        for stale in STAGE_MARKERS.values():  # left by the last kill: not this run's
+            if stale is not None:
+                path = test_out / stale
+                shutil.rmtree(path, ignore_errors=True) if path.is_dir() else path.unlink(missing_ok=True)
+        delay = rng.uniform(0.05, 0.95) * stage_time[target] + (startup * 0.8 if marker is None else 0.0)
         if i > 0:
             resumes += 1  # every run after the first resumes an interrupted one
         proc = subprocess.Popen(sara_cmd(images, test_out, extra), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
                                 text=True)
+        while marker is not None and not (test_out / marker).exists() and proc.poll() is None:
+            time.sleep(0.02)
         time.sleep(delay)
         finished = proc.poll() is not None
         if not finished:
@@ -128,13 +145,21 @@ def kill_phase(args, images: Path, extra: list[str], test_out: Path, stage_time:
         if signum == signal.SIGTERM and not finished:
             record["clean"] = clean and len(lines) == 1 and proc.returncode == 143
         kills.append(record)
-        print(f"kill {i + 1:2d}: {record['signal']:7s} aimed at {target:7s} after {delay:5.1f} s -> "
+        print(f"kill {i + 1:2d}: {record['signal']:7s} aimed at {target:7s} {delay:5.1f} s into it -> "
               f"{'run had finished' if finished else f'exit {proc.returncode}'}, next stage to do: {reached or 'none'}"
               + ("" if "clean" not in record else f", clean: {record['clean']}"))
-        if finished and reached is None:
-            shutil.rmtree(test_out / "sparse", ignore_errors=True)  # keep the last stage exercised
-            (test_out / ".sara" / "map.json").unlink(missing_ok=True)
+        if reached is None:  # all done: undo a stage, in turn, so that every stage is exercised
+            undone = UNDO_ORDER[sum(k["stage_when_killed"] == "done" for k in kills) % len(UNDO_ORDER)]
+            for rel in UNDO[undone]:
+                path = test_out / rel
+                shutil.rmtree(path, ignore_errors=True) if path.is_dir() else path.unlink(missing_ok=True)
     return kills, resumes
+
+
+#: what to remove so that a finished folder redoes a stage (and the ones after it)
+UNDO = {"pairs": ("pairs.txt", ".sara/pairs.json"), "match": (".sara/match.json", ".sara/match-settings.json"),
+        "map": ("sparse", ".sara/map.json")}
+UNDO_ORDER = ("map", "pairs", "match")
 
 
 # ---------------------------------------------------------------------------------------------

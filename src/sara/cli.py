@@ -329,7 +329,9 @@ def main(argv: list[str] | None = None) -> int:
         return code
     finally:
         for signum, handler in previous.items():
-            signal.signal(signum, handler)
+            # called in-process (argv given): put the caller's handlers back; as the `sara` command,
+            # a signal while the interpreter exits after the work is done changes nothing
+            signal.signal(signum, handler if argv is not None else signal.SIG_IGN)
     return 0
 
 
