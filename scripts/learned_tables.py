@@ -6,12 +6,15 @@ prints one table per scene: features x method, with pairs, pairs per image, matc
 per-pair cost, AUC@1/5/10 and the ratios against exhaustive with the same features.
 
     python scripts/learned_tables.py /work/bench_learned/*/results.csv [--sift docs/BENCHMARKS.md]
+
+A bench folder instead of a results.csv also takes the methods it has finished so far.
 """
 
 from __future__ import annotations
 
 import argparse
 import csv
+import json
 import re
 from pathlib import Path
 
@@ -58,11 +61,32 @@ def sift_rows(doc: Path) -> list[dict]:
     return rows
 
 
-def learned_rows(path: Path) -> list[dict]:
-    features = next((k for k in FEATURES if path.parent.name.startswith(k)), path.parent.name)
+def finished_rows(bench_dir: Path) -> list[dict]:
+    """Rows of the methods a still-running bench has finished (BENCH/<scene>/<method>/.sara/bench.json):
+    the bench writes results.csv only when every method of a scene is done."""
     rows = []
-    with path.open() as f:
-        for r in csv.DictReader(f):
+    for record in sorted(bench_dir.glob("*/*/.sara/bench.json")):
+        data = json.loads(record.read_text())
+        if data.get("done"):
+            rows.append({"scene": record.parents[2].name, "method": record.parents[1].name,
+                         **{k: "" if v is None else str(v) for k, v in data["info"].items()}})
+    return rows
+
+
+def learned_rows(path: Path) -> list[dict]:
+    """Rows of a learned bench: its results.csv, or (a folder) results.csv plus finished methods."""
+    bench_dir = path if path.is_dir() else path.parent
+    features = next((k for k in FEATURES if bench_dir.name.startswith(k)), bench_dir.name)
+    found = []
+    if (bench_dir / "results.csv").exists():
+        with (bench_dir / "results.csv").open() as f:
+            found = list(csv.DictReader(f))
+    if path.is_dir():
+        have = {(r["scene"], r["method"]) for r in found}
+        found += [r for r in finished_rows(bench_dir) if (r["scene"], r["method"]) not in have]
+    rows = []
+    if True:
+        for r in found:
             if r.get("error"):
                 continue
             rows.append({"scene": r["scene"], "num_images": int(r["num_images"]), "features": features,
