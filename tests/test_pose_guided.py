@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 from dataclasses import dataclass
 
 import numpy as np
@@ -15,6 +17,10 @@ from sara.selection.pose_guided import (
     covisibility,
     pair_scores,
 )
+
+#: the pose-guided round and the pair caps as measured in docs/ACCURACY.md (off by default until
+#: they win on every shared scene)
+CAPPED = GraphConfig(pose_guided_pairs_per_image=1.0, max_pairs_per_image=4.0, max_pairs_fraction=0.25)
 
 
 @dataclass(frozen=True)
@@ -100,14 +106,14 @@ def test_choose_pairs_skips_pairs_with_nothing_covisible():
 @pytest.mark.parametrize(("num_images", "cap"), [(11, 13), (16, 30), (25, 75), (30, 108), (47, 188), (119, 476),
                                                  (3, 2)])
 def test_pair_cap_is_four_per_image_and_a_quarter_of_exhaustive(num_images, cap):
-    assert GraphConfig().pair_cap(num_images) == cap
+    assert CAPPED.pair_cap(num_images) == cap
 
 
 def test_first_round_leaves_room_for_the_pose_guided_round():
-    conf = GraphConfig()
+    conf = CAPPED
     assert first_round_cap(11, conf) == 13 - 11
     assert first_round_cap(47, conf) == 188 - 47
-    assert first_round_cap(47, GraphConfig(pose_guided_pairs_per_image=0)) == 188
+    assert first_round_cap(47, dataclasses.replace(CAPPED, pose_guided_pairs_per_image=0)) == 188
     assert capped_budgets({"loop": 10, "anchor": 4, "weak": 6}, 10) == {"loop": 5, "anchor": 2, "weak": 3}
     assert capped_budgets({"loop": 1, "anchor": 1, "weak": 1}, 10) == {"loop": 1, "anchor": 1, "weak": 1}
 
