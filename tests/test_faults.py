@@ -607,10 +607,9 @@ def test_disk_nearly_full_before_writing(out, images, monkeypatch, capfd):
     """Native writers (HDF5, SQLite in COLMAP) crash on a full disk: sara checks first."""
     from sara import io as sara_io
 
-    (out / "pairs.txt").unlink()
     monkeypatch.setattr(sara_io, "free_bytes", lambda path: 1000)
     before = snapshot(out)
-    rc, err = sara(capfd, "run", images, out, "-q")
+    rc, err = sara(capfd, "run", images, out, "-q", "--pairs", "exhaustive")  # new pairs: matching must write
     assert_error(rc, err, 4, "no space left", "MB free", "run the same command again")
     assert_kept(before, out, PREVIOUS_OUTPUTS)
     assert not (out / ".sara" / "pairs.next").exists() and not (out / ".sara" / "database.next.db").exists()
