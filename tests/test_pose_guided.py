@@ -131,3 +131,10 @@ def test_select_pairs_respects_max_pairs_but_keeps_the_tree():
     assert np.sum(capped.role == "tree") == n - 1
     tiny = select_pairs(n, edges, weight, parallax, accepted, max_pairs=5)
     assert len(tiny.edge_index) == n - 1  # the spanning tree is never cut
+
+
+def test_densify_keeps_the_first_round_and_caps_at_sixty_percent_of_exhaustive():
+    conf = dataclasses.replace(CAPPED, densify=True)
+    assert first_round_cap(11, conf) == 13  # no room kept back: densify adds to the usual selection
+    assert conf.densify_cap(11) == 33  # 60% of 55
+    assert conf.densify_cap(47) == 6 * 47

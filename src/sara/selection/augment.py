@@ -246,7 +246,11 @@ class Selection:
 
 def first_round_cap(num_images: int, conf: GraphConfig) -> int:
     """Most pairs of the first round: the cap of all rounds (`GraphConfig.pair_cap`) less what the
-    pose-guided round after mapping keeps for itself (the spanning forest is kept regardless)."""
+    pose-guided round after mapping keeps for itself (the spanning forest is kept regardless).
+    With `densify` the first round is the usual selection within the cap, and the pose-guided round
+    adds to it up to `GraphConfig.densify_cap`."""
+    if conf.densify:
+        return conf.pair_cap(num_images)
     reserve = math.ceil(conf.pose_guided_pairs_per_image * num_images - 1e-9)
     return max(0, conf.pair_cap(num_images) - reserve)
 
