@@ -230,9 +230,9 @@ class Selection:
         selected_labels = connected_components(self.num_images, selected)
         return {
             "num_images": int(self.num_images),
-            "num_candidates": int(len(self.edges)),
+            "num_candidates": len(self.edges),
             "num_accepted": int(np.sum(self.role != "rejected")),
-            "num_selected": int(len(self.edge_index)),
+            "num_selected": len(self.edge_index),
             "pairs_per_role": {r: int(np.sum(self.role == r)) for r in ROLES},
             "budgets": {k: int(v) for k, v in self.budgets.items()},
             "num_components_accepted": int(self.num_components),
