@@ -1,0 +1,80 @@
+"""The pose-guided round on a real (synthesized) COLMAP model: reading its geometry, choosing pairs,
+re-triangulating with fixed poses and bundle-adjusting (`sara.colmap.refine`, `sara.pairs.pose_guided`)."""
+
+from __future__ import annotations
+
+from itertools import combinations
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+import pytest
+
+from sara.colmap.refine import read_geometry, triangulate_and_adjust
+from sara.config import make_config
+from sara.pairs import PairContext
+from sara.pairs import pose_guided as round_
+from sara.selection.pose_guided import covisibility
+
+ON = {"graph.pose_guided_pairs_per_image": 0.5, "graph.max_pairs_per_image": 4.0,
+      "graph.max_pairs_fraction": 0.25, "pairs.repair_rounds": 3}
+
+
+@pytest.fixture(scope="module")
+def model(tmp_path_factory) -> Path:
+    """8 posed views of 200 points, every point seen by every view; matches in `database.db`."""
+    root = tmp_path_factory.mktemp("pose_guided")
+    pycolmap.set_random_seed(0)
+    opts = pycolmap.SyntheticDatasetOptions()
+    opts.num_rigs, opts.num_cameras_per_rig, opts.num_frames_per_rig = 1, 1, 8
+    opts.num_points3D = 200
+    opts.camera_width, opts.camera_height = 320, 240
+    opts.camera_model_id = pycolmap.CameraModelId.SIMPLE_RADIAL
+    opts.camera_params = [300.0, 160.0, 120.0, 0.0]
+    db = pycolmap.Database.open(str(root / "database.db"))
+    rec = pycolmap.synthesize_dataset(opts, db)
+    db.close()
+    (root / "sparse" / "0").mkdir(parents=True)
+    (root / "images").mkdir()
+    rec.write(str(root / "sparse" / "0"))
+    return root
+
+
+def test_read_geometry_gives_poses_intrinsics_and_tracks(model: Path):
+    geom = read_geometry(model / "sparse" / "0")
+    rec = pycolmap.Reconstruction(str(model / "sparse" / "0"))
+    assert geom.names == sorted(im.name for im in rec.images.values())
+    assert geom.points_xyz.shape == (200, 3) and len(geom.obs_point) == len(geom.obs_view) == 1600
+    assert np.allclose(geom.focal_px, 300.0) and np.allclose(geom.principal_px, [160.0, 120.0])
+    image = next(im for im in rec.images.values() if im.name == geom.names[0])
+    assert np.allclose(geom.centers[0], image.projection_center())
+    cov = covisibility(geom, np.array(list(combinations(range(8), 2))), max_view_angle_deg=180.0)
+    assert np.all(cov.covisible == 200) and np.all(cov.linked == 200) and np.all(cov.observed == 200)
+
+
+def test_triangulate_and_adjust_keeps_poses_and_points(model: Path, tmp_path: Path):
+    counts = triangulate_and_adjust(model / "sparse" / "0", model / "database.db", model / "images", tmp_path / "out")
+    assert counts == {"num_points3d": 200.0, "num_registered": 8.0}
+    before, after = read_geometry(model / "sparse" / "0"), read_geometry(tmp_path / "out")
+    assert after.names == before.names
+    assert np.allclose(after.centers, before.centers, atol=1e-3 * np.ptp(before.centers))
+
+
+def test_round_chooses_unmatched_pairs_within_its_budget_once(model: Path, tmp_path: Path):
+    names = read_geometry(model / "sparse" / "0").names
+    conf = make_config("sift-offline", ON)
+    ctx = PairContext(names=names, images_root=model / "images", features_path=tmp_path / "none.h5",
+                      db_path=model / "database.db", out_dir=tmp_path, conf=conf, progress=False)
+    chain = [(names[k], names[k + 1]) for k in range(4)]
+    extra, info = round_.select_extra(ctx, chain, model / "sparse" / "0")
+    # its own budget is ceil(0.5 * 8) = 4, but all rounds together may match min(4 * 8, 25% of 28) = 7
+    assert len(extra) == info["budget"] == 7 - 4
+    assert not set(extra) & {tuple(sorted(p)) for p in chain}
+    key = round_.selection_key(chain, conf.graph)
+    assert round_.recorded_pairs(tmp_path, key) is None
+    round_.mark_chosen(tmp_path, key, extra, info)
+    assert round_.recorded_pairs(tmp_path, key) == extra
+    # refinement only for the round's own pairs (a repair round maps again)
+    assert round_.refine(ctx, chain[:2], model / "database.db", model / "sparse" / "0", tmp_path / "r") is None
+    refined = round_.refine(ctx, extra, model / "database.db", model / "sparse" / "0", tmp_path / "r")
+    assert refined is not None and refined["num_registered"] == 8 and refined["time_s"] >= 0
