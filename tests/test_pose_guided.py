@@ -136,4 +136,4 @@ def test_densify_keeps_the_first_round_and_caps_at_sixty_percent_of_exhaustive()
     conf = dataclasses.replace(CAPPED, densify=True)
     assert first_round_cap(11, conf) == 13  # no room kept back: densify adds to the usual selection
     assert conf.densify_cap(11) == 33  # 60% of 55
-    assert conf.densify_cap(47) == 6 * 47
+    assert conf.densify_cap(47) == 8 * 47
