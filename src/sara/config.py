@@ -58,6 +58,10 @@ class RetrievalConfig:
     weights: str = ""  # local weights file for learned descriptors (dinov2, aliked-gem)
     device: str = "auto"  # learned descriptors: auto | cpu | cuda
     image_size: int = 448  # learned descriptors: longer image side in pixels
+    widen_neighbors: int = 80
+    """SARA only: when the selected graph falls apart, the views outside its largest component get
+    more candidates, from this many nearest neighbours (then four times as many if still apart;
+    at most as many new candidates as the kNN gave; 0: off)."""
 
     def __post_init__(self) -> None:
         validate(self)
@@ -97,9 +101,9 @@ class PairsConfig:
     vocab_num_words: int = 4096
     # SARA only: rounds after the first model (0: none). A round repairs views that the model left
     # out although the selected graph joins them (up to repair_pairs_per_view more candidates per
-    # left-out view), else runs the pose-guided round once (graph.pose_guided_*, off by default: with
-    # it on, 3 rounds leave room for a repair before and after it)
-    repair_rounds: int = 1
+    # left-out view), else runs the pose-guided round once (graph.pose_guided_*): 3 rounds leave room
+    # for a repair before and after it (docs/ACCURACY.md)
+    repair_rounds: int = 3
     repair_pairs_per_view: int = 3
 
     def __post_init__(self) -> None:
@@ -191,7 +195,7 @@ class GraphConfig:
     weak_per_view: int = 1
     """Most pairs added per weak view (pairs)."""
 
-    pose_guided_pairs_per_image: float = 0.0
+    pose_guided_pairs_per_image: float = 1.0
     """Pairs per registered image that SARA's pose-guided round adds after the first model
     (pairs / image; 0 disables the round): the unmatched pairs of registered views with the highest
     weight w = O^alpha g(P)^beta, overlap and parallax predicted by the model (docs/ACCURACY.md)."""
@@ -201,9 +205,9 @@ class GraphConfig:
     pose_guided_max_view_angle_deg: float = 45.0
     """A point counts as covisible only if the two views see it from directions at most this far
     apart (degrees): SIFT seldom matches across wider angles."""
-    max_pairs_per_image: float = 1000.0
+    max_pairs_per_image: float = 4.0
     """Cap on the pairs of all rounds together (selection, repair, pose-guided), per image."""
-    max_pairs_fraction: float = 1.0
+    max_pairs_fraction: float = 0.25
     """Cap on the pairs of all rounds together, as a fraction of the exhaustive N (N - 1) / 2; on
     small collections it bounds the selection (the spanning tree is always kept)."""
     densify: bool = False
@@ -403,6 +407,7 @@ RULES: dict[str, tuple[Any, str]] = {
     "retrieval.weights": _text(),
     "retrieval.device": _device(),
     "retrieval.image_size": _ints(32),
+    "retrieval.widen_neighbors": _ints(0),
     "score.num_keypoints": _ints(5),
     "score.num_matches": _ints(5),
     "score.ransac_iterations": _ints(1),

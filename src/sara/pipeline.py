@@ -331,7 +331,9 @@ def after_mapping_rounds(conf: PipelineConfig, images: ImageSet, features_path: 
         try:
             work = match_pairs(conf, staged, features_path, out_dir, executor=ctx.executor, progress=progress,
                                beside=True)
-            _map_round(conf, images.root, out_dir, work, staged, len(extra), progress)
+            refined = _refine_round(conf, ctx, getattr(step, "refine", None), extra, out_dir, work, staged)
+            if refined is None:
+                _map_round(conf, images.root, out_dir, work, staged, len(extra), progress)
         except NoResultError as exc:
             logger.warning("the %d pairs added after mapping gave no better model (%s): keeping the model as it "
                            "was", len(extra), exc)
@@ -342,9 +344,39 @@ def after_mapping_rounds(conf: PipelineConfig, images: ImageSet, features_path: 
         info["pairs_added"] += len(extra)
         info["time_s"] += time.perf_counter() - tic
         info["match_time_s"] += records.done_info(out_dir, match.STAGE).get("time_s", 0.0)
-        info["map_time_s"] += records.done_info(out_dir, mapping.STAGE).get("time_s", 0.0)
+        info["map_time_s"] += (refined["time_s"] if refined is not None
+                               else records.done_info(out_dir, mapping.STAGE).get("time_s", 0.0))
+        info["refined_rounds"] = info.get("refined_rounds", 0) + (refined is not None)
         records.mark_done(out_dir, AFTER_MAPPING_STAGE, "", info)
     return info if info["rounds"] else None
+
+
+def _refine_round(conf: PipelineConfig, ctx: PairContext, refine: Any, extra: list, out_dir: Path, work: Path,
+                  staged: Path) -> dict[str, Any] | None:
+    """A round whose pairs only add constraints between posed views: the pair source refines the
+    main model (re-triangulation with the poses fixed, then bundle adjustment) instead of mapping
+    again from scratch. None when the source has no refinement or declines it for this round."""
+    if refine is None:
+        return None
+    sparse = out_dir / "sparse"
+    tmp = out_dir / ".sara" / "sparse.refined"
+    shutil.rmtree(tmp, ignore_errors=True)
+    result = refine(ctx, extra, work, sparse / "0", tmp / "0")
+    if result is None:
+        shutil.rmtree(tmp, ignore_errors=True)
+        return None
+    for other in sorted(sparse.iterdir()):  # the other components stay as they are
+        if other.is_dir() and other.name != "0":
+            shutil.copytree(other, tmp / other.name)
+    match.commit(work, out_dir / extract.DB_NAME, out_dir)
+    _add_to_pairs_record(out_dir, len(extra), file_digest(staged))
+    os.replace(staged, out_dir / PAIRS_NAME)
+    mapping.swap_in(tmp, sparse)
+    # the map stage now describes the refined model of the committed matches: a re-run skips it
+    key = mapping.state_key(conf.map, conf.seed, fingerprint(match.matches_digest(out_dir / extract.DB_NAME)))
+    info = {**(records.done_info(out_dir, mapping.STAGE) or {}), "refined": True, "time_s": result["time_s"]}
+    records.mark_done(out_dir, mapping.STAGE, key, info, outputs={"sparse": mapping.model_digest(sparse)})
+    return result
 
 
 #: the pairs of a round after mapping, until its model replaces the previous one

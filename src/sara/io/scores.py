@@ -65,6 +65,16 @@ CSV_COLUMNS = (
 )
 
 
+
+def concat_scores(first: PairScores, second: PairScores) -> PairScores:
+    """The scores of `first`'s pairs followed by `second`'s."""
+    return PairScores(
+        name0=first.name0 + second.name0, name1=first.name1 + second.name1,
+        **{name: np.concatenate([getattr(first, name), getattr(second, name)])
+           for name in ("num_matches", "num_inliers", "overlap", "parallax_deg", "weight", "accepted")},
+        reason=first.reason + second.reason,
+    )
+
 def write_scores_csv(path: Path, scores: PairScores, roles: Sequence[str] | None = None) -> Path:
     """Write one row per pair (columns :data:`CSV_COLUMNS`) atomically; returns ``path``.
 

@@ -14,12 +14,14 @@ import logging
 import time
 from itertools import combinations
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from .. import colmap, retrieval, scoring, selection
+from ..descriptors import top_k_cosine
 from ..io.pairs import Pair
-from ..io.scores import read_scores_csv, write_scores_csv
+from ..io.scores import concat_scores, read_scores_csv, write_scores_csv
 from . import PairContext, PairResult, pose_guided
 from .repair import left_out_views, repair_pairs
 
@@ -33,27 +35,42 @@ def select(ctx: PairContext) -> PairResult:
     conf = ctx.conf
     timings: dict[str, float] = {}
     tic = time.perf_counter()
-    names, edges = _candidates(ctx)
+    names, edges, desc = _candidates(ctx)
     timings["retrieval"] = time.perf_counter() - tic
 
     tic = time.perf_counter()
     candidates: list[Pair] = [(names[i], names[j]) for i, j in edges]
-    scores = scoring.score_pairs(candidates, ctx.features_path, ctx.db_path, conf.score, executor=ctx.executor,
-                                 shard_size=conf.execute.shard_size, work_dir=ctx.out_dir / ".sara", progress=ctx.progress, seed=conf.seed)
+    scores = _score(ctx, candidates)
     timings["scoring"] = time.perf_counter() - tic
 
     tic = time.perf_counter()
-    chosen_graph = selection.select_pairs(len(names), edges, scores.weight, scores.parallax_deg, scores.accepted,
-                                          conf.graph, max_pairs=selection.first_round_cap(len(names), conf.graph))
-    roles = list(chosen_graph.role)
-    rescued = rescue_low_parallax(len(names), edges, roles, scores)
+    roles, chosen_graph, rescued = _choose(len(names), edges, scores, conf)
     timings["graph"] = time.perf_counter() - tic
+
+    widened = 0
+    for neighbors in _widen_schedule(conf.retrieval.widen_neighbors, len(names)):
+        labels = selection.connected_components(len(names), _selected_edges(edges, roles))
+        new_edges = widen_candidates(desc, edges, labels, neighbors) if desc is not None else edges[:0]
+        if len(new_edges) == 0:
+            break
+        tic = time.perf_counter()
+        logger.info("the selected graph has %d components: scoring %d more candidates from %d neighbours of "
+                    "the views outside the largest one", int(labels.max()) + 1, len(new_edges), neighbors)
+        new_candidates = [(names[i], names[j]) for i, j in new_edges]
+        scores = concat_scores(scores, _score(ctx, new_candidates))
+        edges, candidates = np.concatenate([edges, new_edges]), candidates + new_candidates
+        widened += len(new_edges)
+        timings["scoring"] += time.perf_counter() - tic
+        tic = time.perf_counter()
+        roles, chosen_graph, rescued = _choose(len(names), edges, scores, conf)
+        timings["graph"] += time.perf_counter() - tic
 
     write_scores_csv(ctx.out_dir / SCORES_NAME, scores, roles)
     chosen = [candidates[e] for e, role in enumerate(roles) if role in selection.SELECTED_ROLES or role == "rescue"]
     labels = selection.connected_components(len(names), _selected_edges(edges, roles))
     info = {
         "num_candidates": len(candidates),
+        "num_widened": widened,
         "num_accepted": int(scores.accepted.sum()),
         "rejected": _count(r for r in scores.reason if r),
         "num_rescued": rescued,
@@ -67,17 +84,79 @@ def select(ctx: PairContext) -> PairResult:
     return PairResult(chosen, info, timings)
 
 
-def _candidates(ctx: PairContext) -> tuple[list[str], np.ndarray]:
-    """Image names and (E, 2) int64 candidate pairs: the kNN of the global descriptors, or every
-    pair when k >= N - 1 (then kNN would return them all: the descriptors are not computed)."""
+def _score(ctx: PairContext, candidates: list[Pair]) -> scoring.PairScores:
+    conf = ctx.conf
+    return scoring.score_pairs(candidates, ctx.features_path, ctx.db_path, conf.score, executor=ctx.executor,
+                               shard_size=conf.execute.shard_size, work_dir=ctx.out_dir / ".sara",
+                               progress=ctx.progress, seed=conf.seed)
+
+
+def _choose(num_images: int, edges: np.ndarray, scores: scoring.PairScores, conf: Any):
+    """Roles of the candidates (spanning tree, augmentation, low-parallax rescue)."""
+    chosen_graph = selection.select_pairs(num_images, edges, scores.weight, scores.parallax_deg, scores.accepted,
+                                          conf.graph, max_pairs=selection.first_round_cap(num_images, conf.graph))
+    roles = list(chosen_graph.role)
+    rescued = rescue_low_parallax(num_images, edges, roles, scores)
+    return roles, chosen_graph, rescued
+
+
+def _widen_schedule(neighbors: int, num_images: int) -> list[int]:
+    """Neighbour counts of the widening rounds: `neighbors`, then four times as many (each at most
+    N - 1; none when 0)."""
+    if neighbors <= 0:
+        return []
+    out: list[int] = []
+    for k in (neighbors, 4 * neighbors):
+        k = min(k, num_images - 1)
+        if not out or k > out[-1]:
+            out.append(k)
+    return out
+
+
+def widen_candidates(desc: np.ndarray, edges: np.ndarray, labels: np.ndarray, neighbors: int) -> np.ndarray:
+    """New candidate pairs for the views outside the largest component of the selected graph.
+
+    Views whose candidates were all rejected (weak texture, hard illumination) or missed by the kNN
+    are cut off from the model. Their `neighbors` nearest global descriptors give more candidates,
+    views of the smallest components first, at most as many new pairs as there are candidates
+    already (so widening at most doubles the scoring). Returns (E', 2) int64 pairs i < j, none of
+    them in `edges`, in a deterministic order.
+    """
+    sizes = np.bincount(labels)
+    outside = np.flatnonzero(labels != 0)
+    if len(outside) == 0 or len(sizes) < 2:
+        return np.zeros((0, 2), dtype=np.int64)
+    outside = outside[np.argsort(sizes[labels[outside]], kind="stable")]  # smallest components first
+    known = {(int(a), int(b)) for a, b in edges}
+    budget = max(len(edges), neighbors)
+    new: list[tuple[int, int]] = []
+    for start in range(0, len(outside), 256):
+        rows = outside[start:start + 256]
+        nbrs = top_k_cosine(desc, neighbors, queries=rows)
+        for i, row in zip(rows, nbrs):
+            for j in row:
+                pair = (min(int(i), int(j)), max(int(i), int(j)))
+                if pair not in known:
+                    known.add(pair)
+                    new.append(pair)
+        if len(new) >= budget:
+            break
+    return np.array(new[:budget], dtype=np.int64).reshape(-1, 2)
+
+
+def _candidates(ctx: PairContext) -> tuple[list[str], np.ndarray, np.ndarray | None]:
+    """Image names, (E, 2) int64 candidate pairs and the global descriptors: the kNN of the global
+    descriptors, or every pair when k >= N - 1 (then kNN would return them all: the descriptors are
+    not computed, None)."""
     conf = ctx.conf
     if conf.retrieval.num_neighbors >= len(ctx.names) - 1:
         names = list(ctx.names)
-        return names, np.array(list(combinations(range(len(names)), 2)), dtype=np.int64).reshape(-1, 2)
+        pairs = np.array(list(combinations(range(len(names)), 2)), dtype=np.int64).reshape(-1, 2)
+        return names, pairs, None
     global_path = retrieval.run(conf.retrieval, ctx.features_path, ctx.names, ctx.out_dir,
                                 images_root=ctx.images_root, progress=ctx.progress, seed=conf.seed)
     names, desc = retrieval.read_global(global_path)
-    return names, retrieval.knn_pairs(desc, conf.retrieval.num_neighbors).astype(np.int64)
+    return names, retrieval.knn_pairs(desc, conf.retrieval.num_neighbors).astype(np.int64), desc
 
 
 def after_mapping(ctx: PairContext, pairs: list[Pair], model_dir: Path) -> list[Pair]:

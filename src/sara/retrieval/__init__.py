@@ -83,9 +83,9 @@ def knn_pairs(desc: np.ndarray, k: int) -> np.ndarray:
 
 
 def _key(conf: RetrievalConfig, features_path: Path, names: Sequence[str], seed: int) -> str:
-    """Fingerprint of everything that shapes the descriptors (not num_neighbors: kNN is cheap)."""
+    """Fingerprint of everything that shapes the descriptors (not the neighbour counts: kNN is cheap)."""
     stat = Path(features_path).stat()
-    fields = {k: v for k, v in dataclasses.asdict(conf).items() if k != "num_neighbors"}
+    fields = {k: v for k, v in dataclasses.asdict(conf).items() if k not in ("num_neighbors", "widen_neighbors")}
     return fingerprint({"names": list(names), "conf": fields, "seed": seed,
                         "features": {"size": stat.st_size, "mtime_ns": stat.st_mtime_ns}})
 
