@@ -72,3 +72,42 @@ def test_unknown_backend_lists_the_valid_ones(synthetic_scene, tmp_path: Path, c
     assert main(["run", str(images), str(tmp_path / "o"), "-q", "-s", "extract.backend=nope"]) == 2
     err = capsys.readouterr().err
     assert err.count("sara: error:") == 1 and "'nope'" in err and "sift, aliked-n16" in err
+
+
+class RecordingExecutor:
+    """Runs jobs here, as two workers would get them, and records each job's pairs."""
+
+    workers = 2
+
+    def __init__(self) -> None:
+        self.jobs: list[int] = []
+
+    def map(self, fn, items):
+        for item in items:
+            self.jobs.append(len(item.pairs))
+            yield fn(item)
+
+
+def test_match_stage_keeps_every_worker_busy_and_run_settings_keep_matches(toy_backends, synthetic_scene,
+                                                                         tmp_path: Path) -> None:
+    from sara import match
+    from sara.config import MatchConfig
+    from sara.io import records
+
+    images, _ = synthetic_scene
+    out = tmp_path / "out"
+    assert main(["run", str(images), str(out), "-q", "--workers", "1", "-s", "extract.backend=toy-cv-sift",
+                 "-s", "match.backend=toy-nn", "--pairs", "exhaustive"]) == 0
+    pairs_path, db, feats = out / "pairs.txt", out / "database.db", out / "features-toy-cv-sift.h5"
+    num_pairs = len(pairs_path.read_text().split("\n")) - 1
+    # fewer pairs than one chunk: split so that both workers get work
+    executor = RecordingExecutor()
+    match.run(MatchConfig(backend="toy-nn", chunk_size=128), pairs_path, db, out, features_path=feats,
+              features_backend="toy-cv-sift", executor=executor, progress=False, overwrite=True)
+    assert len(executor.jobs) == 2 and sum(executor.jobs) == num_pairs
+    # chunk size, threads and device change how matching runs, not its result: nothing is redone
+    again = RecordingExecutor()
+    match.run(MatchConfig(backend="toy-nn", chunk_size=3, num_threads=1, device="cpu"), pairs_path, db, out,
+              features_path=feats, features_backend="toy-cv-sift", executor=again, progress=False)
+    assert again.jobs == []
+    assert records.is_done(out, match.STAGE, records.read_record(out, match.STAGE)["key"])

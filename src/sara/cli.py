@@ -179,6 +179,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--preset", default="sift-offline", help="configuration preset (default: sift-offline)")
     p.add_argument("-s", "--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="override a configuration value for every method (repeatable)")
+    p.add_argument("--workers", type=int, help="parallel workers (default 0: one per CPU core); results do not change")
     p.add_argument("--no-plot", action="store_true", help="skip bench.png")
     _add_output(p)
     return parser

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import math
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -57,14 +58,14 @@ def run(conf: MatchConfig, pairs_path: Path, db_path: Path, out_dir: Path, *, fe
     if not pairs:
         raise NoResultError(f"{pairs_path} lists no pairs: nothing to match (the previous matches are kept)")
     matcher_name = resolve_name(conf, features_backend)
-    key = fingerprint({"pairs": pairs, "conf": {**conf.__dict__, "backend": matcher_name},
+    key = fingerprint({"pairs": pairs, "conf": {**_result_settings(conf), "backend": matcher_name},
                        "features": Path(features_path).name, "keypoints": before["keypoints_digest"]})
     ready = None if overwrite else _finished_database(out_dir, key, db_path, next_db, before)
     if ready is not None:
         logger.info("match: %d pairs already matched, skipping", len(pairs))
         return ready
     matcher = make_matcher(conf, features_backend)  # loads weights: fails here, before any work
-    conf_key = fingerprint({**conf.__dict__, "backend": matcher_name, "features": Path(features_path).name})
+    conf_key = fingerprint({**_result_settings(conf), "backend": matcher_name, "features": Path(features_path).name})
     same_settings = not overwrite and records.is_done(out_dir, CONF_RECORD, conf_key)  # of `db_path`'s matches
     kept = {stage: records.read_record(out_dir, stage) for stage in (STAGE, PROGRESS_RECORD)}
     work = _work_database(db_path, next_db, out_dir, key, conf_key, pairs, names, same_settings=same_settings,
@@ -90,6 +91,14 @@ def run(conf: MatchConfig, pairs_path: Path, db_path: Path, out_dir: Path, *, fe
 
 
 DB_NAME = "database.db"
+
+#: settings that change how the matching runs, never which matches it finds: a run that only
+#: changes them keeps (and resumes) the matches made so far
+_RUN_ONLY_SETTINGS = ("chunk_size", "num_threads", "device")
+
+
+def _result_settings(conf: MatchConfig) -> dict:
+    return {k: v for k, v in conf.__dict__.items() if k not in _RUN_ONLY_SETTINGS}
 
 
 def commit(work: Path, db_path: Path, out_dir: Path) -> None:
@@ -188,7 +197,11 @@ def _match_all(conf: MatchConfig, matcher: Matcher, features_backend: str, featu
     earlier_s, beside = float(earlier.get("time_s", 0.0)), work.name == NEXT_DB_NAME
     tic = time.perf_counter()
     chunk_path = out_dir / ".sara" / "match_chunk.txt"
-    chunks = [todo[k:k + conf.chunk_size] for k in range(0, len(todo), conf.chunk_size)]
+    size = conf.chunk_size
+    if not hasattr(matcher, "match_in_database"):  # enough chunks to keep every worker busy
+        workers = getattr(executor, "workers", 1) if executor is not None else 1
+        size = max(1, min(size, math.ceil(len(todo) / max(1, workers))))
+    chunks = [todo[k:k + size] for k in range(0, len(todo), size)]
     with tqdm(total=len(pairs), initial=len(pairs) - len(todo), desc=f"match pairs ({matcher.name})", unit="pair",
               disable=not progress) as bar, space_free_names(work, out_dir) as alias:
         if hasattr(matcher, "match_in_database"):

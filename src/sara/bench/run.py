@@ -134,7 +134,10 @@ def row_from_report(stages: dict[str, Any], metrics: dict[str, Any] | None) -> d
 
 
 def bench_key(conf: PipelineConfig, features_key: str, gt_dir: Path) -> str:
-    return fingerprint({"conf": conf.to_dict(), "features": features_key, "gt": str(Path(gt_dir).resolve())})
+    """What a finished method row depends on: not where or how parallel the work ran (`execute.*`,
+    which never changes results), so a bench resumed with other workers keeps its finished rows."""
+    settings = {k: v for k, v in conf.to_dict().items() if k != "execute"}
+    return fingerprint({"conf": settings, "features": features_key, "gt": str(Path(gt_dir).resolve())})
 
 
 def run_method(conf: PipelineConfig, images: Path, gt_dir: Path, features_dir: Path, method_dir: Path, *,
