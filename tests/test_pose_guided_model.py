@@ -78,3 +78,37 @@ def test_round_chooses_unmatched_pairs_within_its_budget_once(model: Path, tmp_p
     assert round_.refine(ctx, chain[:2], model / "database.db", model / "sparse" / "0", tmp_path / "r") is None
     refined = round_.refine(ctx, extra, model / "database.db", model / "sparse" / "0", tmp_path / "r")
     assert refined is not None and refined["num_registered"] == 8 and refined["time_s"] >= 0
+
+
+def test_mapping_continues_from_an_input_model(model: Path, tmp_path: Path):
+    """A repair round's mapping: the views missing from the model are registered into it."""
+    from sara import mapping
+    from sara.colmap import registered_images
+    from sara.config import MapConfig
+
+    rec = pycolmap.Reconstruction(str(model / "sparse" / "0"))
+    left_out = sorted(rec.images)[-2:]
+    names = {rec.images[i].name for i in left_out}
+    for image_id in left_out:
+        rec.deregister_frame(rec.images[image_id].frame_id)
+    partial = tmp_path / "partial"
+    partial.mkdir()
+    rec.write(str(partial))
+    assert not names & registered_images(partial)
+    sparse = mapping.run(MapConfig(num_threads=1), model / "database.db", model / "images", tmp_path / "out",
+                         input_model=partial, progress=False)
+    assert len(registered_images(sparse / "0")) == 8
+    # continued, not started again: the mapper registers only the two missing views
+    from sara import colmap
+
+    def images_registered(input_path, out: str):
+        calls = []
+        (tmp_path / out).mkdir()
+        colmap.incremental_mapping(model / "database.db", model / "images", tmp_path / out,
+                                   seed=0, min_model_size=3, abs_pose_min_num_inliers=15,
+                                   abs_pose_min_inlier_ratio=0.1, num_threads=1,
+                                   on_next_image=lambda: calls.append(1), input_path=input_path)
+        return len(calls)
+
+    assert images_registered(partial, "continued") == 2
+    assert images_registered(None, "scratch") >= 6  # the control: from scratch, every view after the first pair

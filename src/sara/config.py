@@ -137,6 +137,9 @@ class MapConfig:
     abs_pose_min_num_inliers: int = 15
     abs_pose_min_inlier_ratio: float = 0.1
     num_threads: int = -1
+    extend_model: bool = True
+    """A round after mapping that must map again (views left out of the model) continues from the
+    model it has (COLMAP's mapper with an input model) instead of mapping everything from scratch."""
 
     def __post_init__(self) -> None:
         validate(self)
@@ -443,6 +446,7 @@ RULES: dict[str, tuple[Any, str]] = {
     "map.abs_pose_min_num_inliers": _ints(3),
     "map.abs_pose_min_inlier_ratio": _reals(0, 1, low_open=True),
     "map.num_threads": _THREADS,
+    "map.extend_model": _flag(),
     "graph.use_loops": _flag(),
     "graph.use_anchors": _flag(),
     "graph.use_weak": _flag(),

@@ -33,9 +33,10 @@ OLD = "sparse.old"
 
 def run(conf: MapConfig, db_path: Path, images_root: Path, out_dir: Path, *, seed: int = 0,
         upstream_key: str = "", progress: bool = True, min_num_inliers: int = 15,
-        commit: Callable[[], None] | None = None, overwrite: bool = False) -> Path:
+        commit: Callable[[], None] | None = None, overwrite: bool = False, input_model: Path | None = None) -> Path:
     """Map the matched database into `out_dir/sparse/N`; returns `sparse/` (component sizes and the
-    time taken go into the stage record).
+    time taken go into the stage record). With `input_model` (incremental mapper only) the mapper
+    continues from that model instead of starting from scratch.
 
     `commit`, when given, runs once the new model exists (or the current one is up to date), just
     before it is swapped in: the pipeline moves the matches it was built from into place there.
@@ -54,7 +55,7 @@ def run(conf: MapConfig, db_path: Path, images_root: Path, out_dir: Path, *, see
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
     try:
-        recs, num_images, elapsed = _map(conf, db_path, images_root, tmp, seed, progress)
+        recs, num_images, elapsed = _map(conf, db_path, images_root, tmp, seed, progress, input_model)
         sizes = colmap.write_models_by_size(tmp, recs)
         if not sizes:
             kept = "; the previous model in sparse/ is kept" if colmap_models(sparse) else ""
@@ -75,7 +76,7 @@ def run(conf: MapConfig, db_path: Path, images_root: Path, out_dir: Path, *, see
 
 
 def _map(conf: MapConfig, db_path: Path, images_root: Path, tmp: Path, seed: int,
-         progress: bool) -> tuple[dict, int, float]:
+         progress: bool, input_model: Path | None = None) -> tuple[dict, int, float]:
     num_images = len(colmap.database_images(db_path))
     colmap.set_seed(seed)
     tic = time.perf_counter()
@@ -85,7 +86,7 @@ def _map(conf: MapConfig, db_path: Path, images_root: Path, tmp: Path, seed: int
                 db_path, images_root, tmp, seed=seed, min_model_size=conf.min_model_size,
                 abs_pose_min_num_inliers=conf.abs_pose_min_num_inliers,
                 abs_pose_min_inlier_ratio=conf.abs_pose_min_inlier_ratio, num_threads=conf.num_threads,
-                on_next_image=lambda: bar.update())
+                on_next_image=lambda: bar.update(), input_path=input_model)
     elif conf.mapper == "global":
         recs = colmap.global_mapping(db_path, images_root, tmp, seed=seed, num_threads=conf.num_threads)
     else:

@@ -395,8 +395,10 @@ def _map_round(conf: PipelineConfig, images_root: Path, out_dir: Path, work: Pat
         os.replace(staged, out_dir / PAIRS_NAME)
 
     upstream = fingerprint(match.matches_digest(work))
+    main = out_dir / "sparse" / "0"
+    extend = conf.map.extend_model and conf.map.mapper == "incremental" and colmap.has_model(main)
     mapping.run(conf.map, work, images_root, out_dir, seed=conf.seed, upstream_key=upstream, progress=progress,
-                min_num_inliers=conf.match.min_num_inliers, commit=commit)
+                min_num_inliers=conf.match.min_num_inliers, commit=commit, input_model=main if extend else None)
 
 
 def _add_to_pairs_record(out_dir: Path, num_added: int, pairs_digest: dict[str, Any] | None) -> None:

@@ -423,8 +423,10 @@ def verified_image_pairs(db: pycolmap.Database) -> list[tuple[int, int, int]]:
 def incremental_mapping(
     db_path: Path, image_dir: Path, out_dir: Path, *, seed: int, min_model_size: int,
     abs_pose_min_num_inliers: int, abs_pose_min_inlier_ratio: float, num_threads: int = -1,
-    on_next_image: Callable[[], None] | None = None,
+    on_next_image: Callable[[], None] | None = None, input_path: Path | None = None,
 ) -> dict[int, pycolmap.Reconstruction]:
+    """COLMAP's incremental mapper; with `input_path` it continues from that model (registers the
+    images it lacks, then bundle-adjusts) instead of starting from an empty one."""
     opts = pycolmap.IncrementalPipelineOptions()
     opts.min_model_size = min_model_size
     opts.num_threads = num_threads
@@ -436,6 +438,7 @@ def incremental_mapping(
     with native_errors("map the matches (incremental mapper)", Path(out_dir)):
         return pycolmap.incremental_mapping(
             str(db_path), str(image_dir), str(out_dir), options=opts,
+            input_path=str(input_path) if input_path is not None else "",
             next_image_callback=on_next_image,
         )
 
