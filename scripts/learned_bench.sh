@@ -15,6 +15,9 @@
 #   disk-headline-fast    DISK+LightGlue, bm-moldGoldCape, sara and retrieval
 #   disk-headline         DISK+LightGlue, bm-moldGoldCape, exhaustive too
 #   disk-small            DISK+LightGlue, the five smaller scenes, exhaustive/retrieval/sara
+#   aliked1024-headline   ALIKED+LightGlue with 1,024 keypoints per image (-s extract.max_num_features=1024),
+#                         bm-moldGoldCape, exhaustive/retrieval/sara: the complete side-by-side comparison
+#                         that 2 CPU cores can finish in about an hour (2,048 keypoints: ~3 s per pair)
 #
 # Environment: DATA (default ../shared/data relative to the repo), OUT (default /work/bench_learned),
 # WORKERS (default 2: learned extraction and matching in 2 processes with 1 torch thread each),
@@ -36,6 +39,7 @@ if [ -n "${SARA_COMMIT:-}" ]; then
     export PYTHONPATH="$src/src${PYTHONPATH:+:$PYTHONPATH}"
 fi
 SARA=("$PYTHON" -m sara)
+EXTRA=()  # more -s KEY=VALUE for one job
 
 big="$DATA/bm-moldGoldCape"
 small=("$DATA/strecha-fountain-P11" "$DATA/middlebury-templeSparseRing" "$DATA/strecha-Herz-Jesus-P25"
@@ -46,7 +50,8 @@ bench() {  # bench PRESET OUTNAME METHODS CHUNK SCENE...
     # idle on a method with fewer than 129 pairs (SARA on the small scenes), so the small scenes use 8.
     local preset="$1" name="$2" methods="$3" chunk="$4"
     shift 4
-    local cmd=("${SARA[@]}" bench "$@" --preset "$preset" --methods "$methods" -s "execute.workers=$WORKERS")
+    local cmd=("${SARA[@]}" bench "$@" --preset "$preset" --methods "$methods" -s "execute.workers=$WORKERS"
+               "${EXTRA[@]}")
     [ "$chunk" = default ] || cmd+=(-s "match.chunk_size=$chunk")
     cmd+=(--out "$OUT/$name" --no-plot -q)
     echo "[$(date -Is)] ${PYTHONPATH:+PYTHONPATH=$PYTHONPATH }${cmd[*]}"
@@ -64,6 +69,8 @@ case "${1:-}" in
     disk-headline-fast)   bench disk-lightglue disk-lightglue-big sara,retrieval default "$big" ;;
     disk-headline)        bench disk-lightglue disk-lightglue-big exhaustive,retrieval,sara default "$big" ;;
     disk-small)           bench disk-lightglue disk-lightglue-small exhaustive,retrieval,sara 8 "${small[@]}" ;;
-    *) sed -n '2,19p' "$0"; exit 2 ;;
+    aliked1024-headline)  EXTRA=(-s extract.max_num_features=1024)
+                          bench aliked-lightglue aliked1024-lightglue-big sara,retrieval,exhaustive default "$big" ;;
+    *) sed -n '2,22p' "$0"; exit 2 ;;
 esac
 

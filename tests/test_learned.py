@@ -406,3 +406,26 @@ def test_real_weights_few_matches_without_overlap():
     conf = ExtractConfig(backend="aliked-n16", max_num_features=1024, device="cpu")
     num_matches, _ = _match_pair(conf, [_load_image(fountain, 512), _load_image(temple, 512)])
     assert num_matches < 100  # measured 24, against 831 for two overlapping fountain views
+
+
+@pytest.mark.parametrize("option,value_key", [("match.weights", "lightglue-disk"), ("retrieval.weights", "dinov2")])
+def test_run_checks_every_weight_file_before_any_work(option, value_key, tmp_path: Path, capsys) -> None:
+    """A matcher's or a global descriptor's missing weights stop `sara run` before extraction, not
+    after the stages before the one that loads them."""
+    from sara.cli import main
+
+    images = tmp_path / "images"
+    images.mkdir()
+    for k in range(2):
+        (images / f"{k}.png").write_bytes(b"")  # never read: the run stops first
+    sets = ["-s", f"{option}={tmp_path / 'missing.pth'}"]
+    if option == "retrieval.weights":
+        sets += ["-s", "retrieval.descriptor=dinov2", "-s", "retrieval.num_neighbors=1"]
+    preset = "disk-lightglue" if option == "match.weights" else "sift-offline"
+    tic = time.perf_counter()
+    code = main(["run", str(images), str(tmp_path / "out"), "-q", "--preset", preset, *sets])
+    assert time.perf_counter() - tic < 1.0
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("sara: error:") == 1 and "missing.pth does not exist" in err
+    assert option in err and value_key in err
+    assert not (tmp_path / "out").exists()

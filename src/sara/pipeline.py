@@ -43,7 +43,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from . import __version__, colmap, extract, mapping, match
+from . import __version__, colmap, extract, mapping, match, weights
 from .config import PipelineConfig
 from .execute import Executor, make_executor
 from .features import BACKENDS as FEATURE_BACKENDS
@@ -155,6 +155,20 @@ def preflight(conf: PipelineConfig) -> None:
     if _uses_retrieval(conf) and conf.retrieval.descriptor not in DESCRIPTORS:
         raise ValueError(f"retrieval.descriptor must be one of {', '.join(DESCRIPTORS)}, "
                          f"got {conf.retrieval.descriptor!r}")
+    # every weight file the run will load, found now (file-system look-ups only): a missing one
+    # fails in well under a second, not after the stages before it
+    needed = list(_weights_needed(FEATURE_BACKENDS.get(conf.extract.backend), conf.extract))
+    needed += _weights_needed(MATCHER_BACKENDS.get(matcher), conf.match, conf.extract.backend)
+    if _uses_retrieval(conf):
+        needed += _weights_needed(DESCRIPTORS.get(conf.retrieval.descriptor), conf.retrieval)
+    for key, explicit in needed:
+        weights.find(key, explicit)
+
+
+def _weights_needed(backend: Any, *args: Any) -> list[tuple[str, str]]:
+    """The (weights key, explicit path) a backend declares through its `weights_needed`, if any."""
+    declare = getattr(backend, "weights_needed", None)
+    return list(declare(*args)) if declare is not None else []
 
 
 def pair_context(conf: PipelineConfig, images: ImageSet, features_path: Path, out_dir: Path, *,

@@ -196,3 +196,11 @@ def make(conf: ExtractConfig) -> LearnedFeatures:
     model = model.eval().to(device)
     logger.info("%s on %s, weights %s", conf.backend, device, path)
     return LearnedFeatures(conf.backend, model, device, conf.max_num_features)
+
+
+def weights_needed(conf: ExtractConfig) -> list[tuple[str, str]]:
+    """(weights key, explicit path) that `make` will look up: checked before any work."""
+    return [(conf.backend, conf.weights)]
+
+
+make.weights_needed = weights_needed  # type: ignore[attr-defined]

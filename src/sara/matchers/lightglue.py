@@ -121,3 +121,11 @@ def make(conf: MatchConfig, features: str) -> LightGlueMatcher:
     model = build(kind, path).to(device)
     logger.info("%s for %s on %s, weights %s", name, features, device, path)
     return LightGlueMatcher(name, model, device, dim=model.conf.input_dim)
+
+
+def weights_needed(conf: MatchConfig, features: str) -> list[tuple[str, str]]:
+    """(weights key, explicit path) that `make` will look up: checked before any work."""
+    return [(FEATURES[features][1], conf.weights)] if features in FEATURES else []
+
+
+make.weights_needed = weights_needed  # type: ignore[attr-defined]

@@ -54,6 +54,11 @@ class DinoV2Descriptor:
 
     name: str = "dinov2"
 
+    @classmethod
+    def weights_needed(cls, conf: RetrievalConfig) -> list[tuple[str, str]]:
+        """(weights key, explicit path) that `build` will look up: checked before any work."""
+        return [("dinov2", conf.weights)]
+
     def build(self, conf: RetrievalConfig) -> Any:
         path = weights.find("dinov2", conf.weights)  # a missing file fails here, before any work
         dinov2 = weights.require("kornia.feature.dedode.transformer.dinov2")
@@ -86,6 +91,11 @@ class AlikedGemDescriptor:
 
     name: str = "aliked-gem"
     backbone: str = "aliked-n16"
+
+    @classmethod
+    def weights_needed(cls, conf: RetrievalConfig) -> list[tuple[str, str]]:
+        """(weights key, explicit path) that `build` will look up: checked before any work."""
+        return [(cls.backbone, conf.weights)]
 
     def build(self, conf: RetrievalConfig) -> Any:
         path = weights.find(self.backbone, conf.weights)
