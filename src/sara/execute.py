@@ -16,6 +16,7 @@ from __future__ import annotations
 import logging
 import multiprocessing
 import os
+import time
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from typing import Any, Protocol, TypeVar, runtime_checkable
@@ -76,10 +77,25 @@ class ProcessExecutor:
 
 
 def _ignore_interrupts() -> None:
-    """Workers leave Ctrl-C to the driver, which stops them: no traceback from every worker."""
+    """Workers leave Ctrl-C to the driver, which stops them: no traceback from every worker. And
+    they never outlive it: a driver killed outright (SIGKILL, or SIGTERM to it alone) cannot stop
+    its pool, so each worker exits by itself within a second of its parent's end."""
     import signal
+    import threading
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    parent = os.getppid()
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(PARENT_POLL_S)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="sara-parent-watch", daemon=True).start()
+
+
+#: how often a worker checks that its driver is still there (seconds)
+PARENT_POLL_S = 0.5
 
 
 def single_threaded_torch_in_worker() -> None:
