@@ -110,7 +110,9 @@ def test_pair_cap_is_four_per_image_and_a_quarter_of_exhaustive(num_images, cap)
 
 def test_first_round_leaves_room_for_the_pose_guided_round():
     conf = CAPPED
-    assert first_round_cap(11, conf) == 13 - 11
+    # room beyond the tree: 13 - 10 = 3 on 11 images, of which the round keeps half (1)
+    assert first_round_cap(11, conf) == 13 - 1
+    assert first_round_cap(16, conf) == 30 - 7
     assert first_round_cap(47, conf) == 188 - 47
     assert first_round_cap(47, dataclasses.replace(CAPPED, pose_guided_pairs_per_image=0)) == 188
     assert capped_budgets({"loop": 10, "anchor": 4, "weak": 6}, 10) == {"loop": 5, "anchor": 2, "weak": 3}

@@ -251,8 +251,13 @@ def first_round_cap(num_images: int, conf: GraphConfig) -> int:
     adds to it up to `GraphConfig.densify_cap`."""
     if conf.densify:
         return conf.pair_cap(num_images)
+    cap = conf.pair_cap(num_images)
     reserve = math.ceil(conf.pose_guided_pairs_per_image * num_images - 1e-9)
-    return max(0, conf.pair_cap(num_images) - reserve)
+    # where the cap leaves little beyond the spanning tree (small collections, where 25% of the
+    # exhaustive pairs binds), the round keeps at most half of that room: a first model built on
+    # the bare tree leaves views out, and mapping again for them costs more than the round saves
+    room = max(0, cap - max(num_images - 1, 0))
+    return max(0, cap - min(reserve, room // 2))
 
 
 def capped_budgets(budgets: dict[str, int], room: int) -> dict[str, int]:
