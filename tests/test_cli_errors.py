@@ -81,3 +81,36 @@ def test_match_without_extract(tmp_path: Path):
 def test_help(command):
     rc, out, _ = sara(command, "--help")
     assert rc == 0 and "usage" in out
+
+
+def test_an_error_caused_by_an_interrupt_is_reported_as_the_interrupt(monkeypatch, capsys, tmp_path) -> None:
+    """A library may turn the interrupt raised inside it into its own error (poselib: RuntimeError
+    when the import of its extension is interrupted); the user still gets the interrupt's line."""
+    import signal
+
+    from sara import cli
+
+    def interrupted_import(args, stage=None):
+        try:
+            raise KeyboardInterrupt
+        except KeyboardInterrupt as exc:
+            raise RuntimeError("Cannot import the C++ backend") from exc
+
+    def terminated_then_wrapped(args, stage=None):
+        cli._RECEIVED.append(signal.SIGTERM)  # as the handler records it; the chain is lost below
+        raise RuntimeError("Cannot import the C++ backend")
+
+    saved = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)}
+    try:  # once interrupted, main ignores these signals: put this process's handlers back after
+        monkeypatch.setattr(cli, "_cmd_run", interrupted_import)
+        code = cli.main(["run", str(tmp_path), str(tmp_path / "out"), "-q"])
+        err = capsys.readouterr().err
+        assert code == 128 + signal.SIGINT and err.count("sara: error:") == 1 and "interrupted by SIGINT" in err
+
+        monkeypatch.setattr(cli, "_cmd_run", terminated_then_wrapped)
+        code = cli.main(["run", str(tmp_path), str(tmp_path / "out"), "-q"])
+        err = capsys.readouterr().err
+        assert code == 143 and "interrupted by SIGTERM" in err and "internal error" not in err
+    finally:
+        for signum, handler in saved.items():
+            signal.signal(signum, handler)

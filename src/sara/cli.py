@@ -44,6 +44,10 @@ FLAGS = {"seed": "--seed", "execute.workers": "--workers", "execute.executor": "
          "images.recursive": "--recursive", "pairs.method": "--pairs"}
 
 
+#: termination signals received by this command (the error that follows one is reported as it)
+_RECEIVED: list[int] = []
+
+
 class Terminated(KeyboardInterrupt):
     """SIGTERM or SIGHUP, handled like Ctrl-C (clean-up runs, one line, exit 128 + signal)."""
 
@@ -310,9 +314,16 @@ def main(argv: list[str] | None = None) -> int:
         "match": _cmd_match, "map": _cmd_map, "evaluate": _cmd_evaluate, "demo": _cmd_demo,
         "bench": _cmd_bench, "weights": weights.cmd,
     }
+    _RECEIVED.clear()
     previous = _handle_termination() if args.command != "weights" else {}
     try:
-        commands[args.command](args)
+        try:
+            commands[args.command](args)
+        except Exception as exc:
+            interrupt = _interrupt_behind(exc)
+            if interrupt is None:
+                raise
+            raise interrupt from exc
     except KeyboardInterrupt as exc:
         signum = exc.signum if isinstance(exc, Terminated) else signal.SIGINT
         for other in (signal.SIGINT, *previous):  # a second signal while exiting changes nothing
@@ -336,6 +347,22 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
+def _interrupt_behind(exc: BaseException) -> KeyboardInterrupt | None:
+    """The Ctrl-C or termination that a library turned into another error, if any: a signal that
+    arrives while a module is imported can come back as that module's own error (poselib raises
+    RuntimeError when the import of its extension is interrupted, without the chain)."""
+    if _RECEIVED:
+        return Terminated(_RECEIVED[-1])
+    seen: set[int] = set()
+    cause: BaseException | None = exc
+    while cause is not None and id(cause) not in seen:
+        if isinstance(cause, KeyboardInterrupt):
+            return cause
+        seen.add(id(cause))
+        cause = cause.__cause__ or cause.__context__
+    return None
+
+
 def _handle_termination() -> dict[int, Any]:
     """SIGTERM and SIGHUP raise Terminated, like SIGINT raises KeyboardInterrupt: clean-up code
     runs and the user gets one line. pycolmap installs a native handler that prints a stack dump on
@@ -344,6 +371,7 @@ def _handle_termination() -> dict[int, Any]:
 
     def terminate(signum: int, frame: object) -> None:
         signal.signal(signum, signal.SIG_IGN)  # a second signal does not break the clean-up
+        _RECEIVED.append(signum)
         raise Terminated(signum)
 
     previous = {}
