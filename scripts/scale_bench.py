@@ -113,26 +113,24 @@ def tree_usage(pid: int) -> tuple[int, float, int, int]:
     return rss, cpu, pss, len(seen)
 
 
-def read_pss_bytes(pid: int | str) -> int:
+def _proc_field_bytes(path: str, field: str) -> int:
+    """A `field: N kB` line of a /proc file, in bytes (0 when unreadable)."""
     try:
-        with open(f"/proc/{pid}/smaps_rollup", encoding="ascii") as f:
+        with open(path, encoding="ascii") as f:
             for line in f:
-                if line.startswith("Pss:"):
+                if line.startswith(field):
                     return int(line.split()[1]) * 1024
     except OSError:
         pass
     return 0
+
+
+def read_pss_bytes(pid: int | str) -> int:
+    return _proc_field_bytes(f"/proc/{pid}/smaps_rollup", "Pss:")
 
 
 def read_rss_bytes(pid: int | str = "self") -> int:
-    try:
-        with open(f"/proc/{pid}/status", encoding="ascii") as f:
-            for line in f:
-                if line.startswith("VmRSS:"):
-                    return int(line.split()[1]) * 1024
-    except OSError:
-        pass
-    return 0
+    return _proc_field_bytes(f"/proc/{pid}/status", "VmRSS:")
 
 
 class RssSampler(threading.Thread):

@@ -61,7 +61,7 @@ class RetrievalConfig:
     widen_neighbors: int = 80
     """SARA only: when the selected graph falls apart, the views outside its largest component get
     more candidates, from this many nearest neighbours (then four times as many if still apart;
-    at most as many new candidates as the kNN gave; 0: off)."""
+    each round at most as many new candidates as were scored before it; 0: off)."""
 
     def __post_init__(self) -> None:
         validate(self)

@@ -119,7 +119,7 @@ def widen_candidates(desc: np.ndarray, edges: np.ndarray, labels: np.ndarray, ne
     Views whose candidates were all rejected (weak texture, hard illumination) or missed by the kNN
     are cut off from the model. Their `neighbors` nearest global descriptors give more candidates,
     views of the smallest components first, at most as many new pairs as there are candidates
-    already (so widening at most doubles the scoring). Returns (E', 2) int64 pairs i < j, none of
+    already (each of the two rounds at most doubles the scoring). Returns (E', 2) int64 pairs i < j, none of
     them in `edges`, in a deterministic order.
     """
     sizes = np.bincount(labels)
