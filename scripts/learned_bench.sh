@@ -18,8 +18,13 @@
 #   aliked1024-headline   ALIKED+LightGlue with 1,024 keypoints per image (-s extract.max_num_features=1024),
 #                         bm-moldGoldCape, exhaustive/retrieval/sara: the complete side-by-side comparison
 #                         that 2 CPU cores can finish in about an hour (2,048 keypoints: ~3 s per pair)
+#   aliked1024-small      the same 1,024 keypoints, the five smaller scenes, exhaustive/retrieval/sara
+#   disk1024-headline-fast, disk1024-headline, disk1024-small
+#                         DISK+LightGlue at 1,024 keypoints, as the three jobs above
+#   xfeat-templering      XFeat+LighterGlue, middlebury-templeRing alone, exhaustive/retrieval/sara
+#   queue JOB...          run several jobs one after the other (a failed job does not stop the rest)
 #
-# Environment: DATA (default ../shared/data relative to the repo), OUT (default /work/bench_learned),
+# Environment: METHODS (replaces a job's list of methods), DATA (default ../shared/data relative to the repo), OUT (default /work/bench_learned),
 # WORKERS (default 2: learned extraction and matching in 2 processes with 1 torch thread each),
 # SARA_COMMIT (optional: run the code of this commit, copied once to $OUT/src-<commit>, instead of the
 # working tree, so that edits made while a job runs for hours cannot change it halfway).
@@ -48,7 +53,7 @@ small=("$DATA/strecha-fountain-P11" "$DATA/middlebury-templeSparseRing" "$DATA/s
 bench() {  # bench PRESET OUTNAME METHODS CHUNK SCENE...
     # CHUNK: pairs per matcher job (match.chunk_size). The default 128 leaves one of the two workers
     # idle on a method with fewer than 129 pairs (SARA on the small scenes), so the small scenes use 8.
-    local preset="$1" name="$2" methods="$3" chunk="$4"
+    local preset="$1" name="$2" methods="${METHODS:-$3}" chunk="$4"
     shift 4
     local cmd=("${SARA[@]}" bench "$@" --preset "$preset" --methods "$methods" -s "execute.workers=$WORKERS"
                "${EXTRA[@]}")
@@ -71,6 +76,18 @@ case "${1:-}" in
     disk-small)           bench disk-lightglue disk-lightglue-small exhaustive,retrieval,sara 8 "${small[@]}" ;;
     aliked1024-headline)  EXTRA=(-s extract.max_num_features=1024)
                           bench aliked-lightglue aliked1024-lightglue-big sara,retrieval,exhaustive default "$big" ;;
-    *) sed -n '2,22p' "$0"; exit 2 ;;
+    aliked1024-small)     EXTRA=(-s extract.max_num_features=1024)
+                          bench aliked-lightglue aliked1024-lightglue-small exhaustive,retrieval,sara 8 "${small[@]}" ;;
+    disk1024-headline-fast) EXTRA=(-s extract.max_num_features=1024)
+                          bench disk-lightglue disk1024-lightglue-big sara,retrieval default "$big" ;;
+    disk1024-headline)    EXTRA=(-s extract.max_num_features=1024)
+                          bench disk-lightglue disk1024-lightglue-big sara,retrieval,exhaustive default "$big" ;;
+    disk1024-small)       EXTRA=(-s extract.max_num_features=1024)
+                          bench disk-lightglue disk1024-lightglue-small exhaustive,retrieval,sara 8 "${small[@]}" ;;
+    xfeat-templering)     bench xfeat-lighterglue xfeat-lighterglue-templering exhaustive,retrieval,sara 8 \
+                              "$DATA/middlebury-templeRing" ;;
+    queue)                shift
+                          for job in "$@"; do "$0" "$job" || echo "[$(date -Is)] job $job failed"; done ;;
+    *) sed -n '2,29p' "$0"; exit 2 ;;
 esac
 
