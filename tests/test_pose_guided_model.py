@@ -112,3 +112,32 @@ def test_mapping_continues_from_an_input_model(model: Path, tmp_path: Path):
 
     assert images_registered(partial, "continued") == 2
     assert images_registered(None, "scratch") >= 6  # the control: from scratch, every view after the first pair
+
+
+def test_continuing_from_a_model_without_points_on_the_new_matches(model: Path, tmp_path: Path, caplog):
+    """The repair round's case: the left-out views match features the model never triangulated.
+
+    Continued as written, such a model cannot register them; sara first triangulates the new
+    matches with the poses fixed, so the mapper registers them without mapping anew."""
+    from sara import mapping
+    from sara.colmap import registered_images
+    from sara.colmap.refine import triangulate_new_matches
+    from sara.config import MapConfig
+
+    rec = pycolmap.Reconstruction(str(model / "sparse" / "0"))
+    for image_id in sorted(rec.images)[-2:]:
+        rec.deregister_frame(rec.images[image_id].frame_id)
+    for point_id in list(rec.points3D):
+        rec.delete_point3D(point_id)
+    bare = tmp_path / "bare"
+    bare.mkdir()
+    rec.write(str(bare))
+    assert pycolmap.Reconstruction(str(bare)).num_points3D() == 0
+    assert triangulate_new_matches(bare, model / "database.db", model / "images", tmp_path / "tri") == 200
+    before, after = read_geometry(bare), read_geometry(tmp_path / "tri")
+    assert after.names == before.names and np.allclose(after.centers, before.centers)
+    caplog.set_level("INFO", logger="sara.mapping")
+    sparse = mapping.run(MapConfig(num_threads=1), model / "database.db", model / "images", tmp_path / "out",
+                         input_model=bare, progress=False)
+    assert len(registered_images(sparse / "0")) == 8
+    assert "mapping from scratch too" not in caplog.text

@@ -21,6 +21,7 @@ from typing import Any
 from tqdm import tqdm
 
 from . import colmap
+from .colmap import refine as colmap_refine
 from .config import MapConfig
 from .io import DamagedOutputError, NoResultError, file_digest, fingerprint, records
 
@@ -105,12 +106,18 @@ def _extend(conf: MapConfig, db_path: Path, images_root: Path, tmp: Path, seed: 
     main model, map from scratch too and keep the result whose largest model holds more views
     (the continued one on a tie).
 
-    Continuing is much cheaper than mapping again, but the mapper cannot revisit its earlier
-    choices: on templeSparseRing the continued model kept 13 of 16 views where a new one held 16.
+    The model is first re-triangulated with the new matches (poses fixed): continuing from it as
+    written, the mapper found too few 3D points on the features the left-out views share with it
+    (templeSparseRing: 13 of 16 views kept; 16 after re-triangulating, in 0.2 s against 0.7 s
+    for mapping anew). Mapping from scratch stays the fallback because the mapper cannot revisit
+    its earlier choices.
     """
     tic = time.perf_counter()
     (tmp / "extended").mkdir()
-    recs, num_images, _ = _map(conf, db_path, images_root, tmp / "extended", seed, progress, input_model)
+    start = tmp / "input"
+    colmap_refine.triangulate_new_matches(input_model, db_path, images_root, start, num_threads=conf.num_threads,
+                                          seed=seed)
+    recs, num_images, _ = _map(conf, db_path, images_root, tmp / "extended", seed, progress, start)
     reachable = max(colmap.verified_graph(db_path, min_num_inliers)[2], default=0)
     extended = max((r.num_reg_images() for r in recs.values()), default=0)
     if extended < reachable:
@@ -120,6 +127,7 @@ def _extend(conf: MapConfig, db_path: Path, images_root: Path, tmp: Path, seed: 
         scratch_recs, _, _ = _map(conf, db_path, images_root, tmp / "scratch", seed, progress)
         if max((r.num_reg_images() for r in scratch_recs.values()), default=0) > extended:
             recs = scratch_recs
+    shutil.rmtree(start, ignore_errors=True)
     return recs, num_images, time.perf_counter() - tic
 
 

@@ -4,6 +4,8 @@ The pycolmap calls of SARA's pose-guided round (`sara.pairs.pose_guided`) live h
 
 - `read_geometry`: poses, pinhole intrinsics, 3D points and their tracks of a model folder, as
   plain arrays (what the covisibility prediction of `sara.selection.pose_guided` needs);
+- `triangulate_new_matches`: the same triangulator keeping the model's points, so that a mapper
+  continuing from the model finds 3D points on the features that newly matched views share with it;
 - `triangulate_and_adjust`: COLMAP's point triangulator with the poses of a model held fixed
   (`pycolmap.triangulate_points`), then a global bundle adjustment that frees the poses again.
 
@@ -82,6 +84,28 @@ def read_geometry(model_dir: Path) -> ModelGeometry:
         obs_point=np.asarray(obs_point, dtype=np.int64),
         obs_view=np.asarray(obs_view, dtype=np.int64),
     )
+
+
+def triangulate_new_matches(model_dir: Path, db_path: Path, image_dir: Path, out_dir: Path, *,
+                            num_threads: int = -1, seed: int = 0) -> int:
+    """Write `model_dir` with its points completed from every match of `db_path` (poses fixed, the
+    existing points kept) to `out_dir`; returns the number of 3D points.
+
+    Continuing COLMAP's mapper straight from a model written before new pairs were matched left
+    views out that those pairs join to it (templeSparseRing: 13 of 16 registered, 16 after this).
+    """
+    rec = pycolmap.Reconstruction(str(model_dir))
+    out_dir = Path(out_dir)
+    shutil.rmtree(out_dir, ignore_errors=True)
+    out_dir.mkdir(parents=True)
+    options = pycolmap.IncrementalPipelineOptions()
+    options.num_threads = num_threads
+    options.random_seed = seed
+    options.triangulation.random_seed = seed
+    rec = pycolmap.triangulate_points(rec, str(db_path), str(image_dir), str(out_dir), clear_points=False,
+                                      options=options, refine_intrinsics=False)
+    rec.write(str(out_dir))
+    return int(rec.num_points3D())
 
 
 def triangulate_and_adjust(model_dir: Path, db_path: Path, image_dir: Path, out_dir: Path, *,
