@@ -4,6 +4,8 @@ end to end through the registries."""
 
 from __future__ import annotations
 
+import math
+
 from pathlib import Path
 
 import numpy as np
@@ -100,11 +102,12 @@ def test_match_stage_keeps_every_worker_busy_and_run_settings_keep_matches(toy_b
                  "-s", "match.backend=toy-nn", "--pairs", "exhaustive"]) == 0
     pairs_path, db, feats = out / "pairs.txt", out / "database.db", out / "features-toy-cv-sift.h5"
     num_pairs = len(pairs_path.read_text().split("\n")) - 1
-    # fewer pairs than one chunk: split so that both workers get work
+    # fewer pairs than one chunk: split so that both workers get several chunks each
     executor = RecordingExecutor()
     match.run(MatchConfig(backend="toy-nn", chunk_size=128), pairs_path, db, out, features_path=feats,
               features_backend="toy-cv-sift", executor=executor, progress=False, overwrite=True)
-    assert len(executor.jobs) == 2 and sum(executor.jobs) == num_pairs
+    assert sum(executor.jobs) == num_pairs and max(executor.jobs) == math.ceil(num_pairs / (2 * match.CHUNKS_PER_WORKER))
+    assert len(executor.jobs) >= 2 * match.CHUNKS_PER_WORKER - 1
     # chunk size, threads and device change how matching runs, not its result: nothing is redone
     again = RecordingExecutor()
     match.run(MatchConfig(backend="toy-nn", chunk_size=3, num_threads=1, device="cpu"), pairs_path, db, out,

@@ -198,9 +198,11 @@ def _match_all(conf: MatchConfig, matcher: Matcher, features_backend: str, featu
     tic = time.perf_counter()
     chunk_path = out_dir / ".sara" / "match_chunk.txt"
     size = conf.chunk_size
-    if not hasattr(matcher, "match_in_database"):  # enough chunks to keep every worker busy
-        workers = getattr(executor, "workers", 1) if executor is not None else 1
-        size = max(1, min(size, math.ceil(len(todo) / max(1, workers))))
+    workers = getattr(executor, "workers", 1) if executor is not None else 1
+    if not hasattr(matcher, "match_in_database") and workers > 1:
+        # a few chunks per worker, so that no worker idles at the end while another finishes a
+        # chunk of harder pairs (LightGlue's time per pair varies several-fold with the overlap)
+        size = max(1, min(size, math.ceil(len(todo) / (workers * CHUNKS_PER_WORKER))))
     chunks = [todo[k:k + size] for k in range(0, len(todo), size)]
     with tqdm(total=len(pairs), initial=len(pairs) - len(todo), desc=f"match pairs ({matcher.name})", unit="pair",
               disable=not progress) as bar, space_free_names(work, out_dir) as alias:
@@ -224,6 +226,10 @@ def _match_all(conf: MatchConfig, matcher: Matcher, features_backend: str, featu
                                                               "beside": beside, "conf_key": conf_key})
     chunk_path.unlink(missing_ok=True)
     return earlier_s + time.perf_counter() - tic, len(todo)
+
+
+#: chunks per worker at least, when there are few pairs for the executor's workers
+CHUNKS_PER_WORKER = 4
 
 
 @dataclass(frozen=True)
