@@ -505,6 +505,12 @@ def _cross_checks(conf: Any, section: str) -> None:
                           f"score.num_keypoints ({conf.num_keypoints})")
 
 
+#: What the learned presets share. A LightGlue pair costs 3-10x a SIFT pair on a CPU, so their pair
+#: budget is 2.5 N for all rounds (SIFT: 4 N) and the pose-guided round adds half a pair per view
+#: (SIFT: one): measured on bm-moldGoldCape in docs/BENCHMARKS.md ("The learned presets' budget").
+_LEARNED: dict[str, Any] = {"extract.max_num_features": 2048, "extract.max_image_size": 1024,
+                            "graph.max_pairs_per_image": 2.5, "graph.pose_guided_pairs_per_image": 0.5}
+
 PRESETS: dict[str, dict[str, Any]] = {
     "sift-offline": {},
     # Faster preview on large collections: fewer SIFT features, smaller images.
@@ -512,12 +518,9 @@ PRESETS: dict[str, dict[str, Any]] = {
     # The paper's setting: learned features and LightGlue (`pip install 'sara[learned]'` and the weights;
     # `sara weights` says where each file is looked for). 1024 px and 2048 keypoints, as measured in
     # docs/BENCHMARKS.md; the licence of each weight file is listed by `sara weights`.
-    "aliked-lightglue": {"extract.backend": "aliked-n16", "extract.max_num_features": 2048,
-                         "extract.max_image_size": 1024, "match.backend": "lightglue"},
-    "disk-lightglue": {"extract.backend": "disk", "extract.max_num_features": 2048,
-                       "extract.max_image_size": 1024, "match.backend": "lightglue"},
-    "xfeat-lighterglue": {"extract.backend": "xfeat", "extract.max_num_features": 2048,
-                          "extract.max_image_size": 1024, "match.backend": "lighterglue"},
+    "aliked-lightglue": {"extract.backend": "aliked-n16", **_LEARNED, "match.backend": "lightglue"},
+    "disk-lightglue": {"extract.backend": "disk", **_LEARNED, "match.backend": "lightglue"},
+    "xfeat-lighterglue": {"extract.backend": "xfeat", **_LEARNED, "match.backend": "lighterglue"},
 }
 
 
