@@ -37,7 +37,8 @@ class ExtractConfig:
     device: str = "auto"  # learned backends: auto | cpu | cuda
     weights: str = ""  # learned backends: a local weights file (else found as `sara weights` lists)
     camera_model: str = "SIMPLE_RADIAL"
-    # auto: one shared camera when all images have the same size (and EXIF focal), else one per image
+    # auto: one shared camera when all images have the same size and the same EXIF camera (make, model,
+    # focal; or no EXIF at all), else one per image (photos from different phones)
     camera_mode: str = "auto"  # auto | single | per_image | per_folder
     camera_params: str = ""  # known intrinsics, e.g. "fx,fy,cx,cy" for PINHOLE; empty = EXIF or prior
     default_focal_length_factor: float = 1.2  # COLMAP's prior: focal = factor * max(width, height)

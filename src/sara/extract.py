@@ -33,22 +33,35 @@ class OutputMismatchError(OutputStateError, ValueError):
 
 def exif_focal_mm(path: Path) -> float | None:
     """The EXIF focal length in mm, or None."""
+    return exif_camera(path)[2]
+
+
+def exif_camera(path: Path) -> tuple[str | None, str | None, float | None]:
+    """(make, model, focal length in mm) from EXIF, each None where absent or unreadable."""
     from PIL import Image
 
     try:
         with Image.open(path) as im:
             exif = im.getexif()
+            make, model = exif.get(0x010F), exif.get(0x0110)
             focal = exif.get_ifd(0x8769).get(0x920A) or exif.get(0x920A)
-    except Exception:  # noqa: BLE001 - EXIF is optional; any failure means "no EXIF focal"
-        return None
+    except Exception:  # noqa: BLE001 - EXIF is optional; any failure means "no EXIF"
+        return None, None, None
     try:
-        return float(focal) if focal else None
+        focal_mm = float(focal) if focal else None
     except (TypeError, ValueError, ZeroDivisionError):
-        return None
+        focal_mm = None
+
+    def text(value: object) -> str | None:
+        return str(value).strip("\x00 ").strip() or None if value else None
+
+    return text(make), text(model), focal_mm
 
 
 def resolve_camera_mode(images: ImageSet, conf: ExtractConfig) -> str:
-    """`auto`: one shared camera when every image has the same size and EXIF focal, else per image."""
+    """`auto`: one shared camera when every image has the same size and the same EXIF camera (make,
+    model and focal length, or no EXIF at all, as frames of one video), else one camera per image:
+    photos of the same size from different phones must not share intrinsics."""
     if conf.camera_mode != "auto":
         if conf.camera_mode not in ("single", "per_image", "per_folder"):
             raise ValueError(
@@ -58,8 +71,8 @@ def resolve_camera_mode(images: ImageSet, conf: ExtractConfig) -> str:
     sizes = {images.sizes[n] for n in images.names}
     if len(sizes) > 1:
         return "per_image"
-    focals = {exif_focal_mm(images.root / n) for n in images.names}
-    return "single" if len(focals) == 1 else "per_image"
+    cameras = {exif_camera(images.root / n) for n in images.names}
+    return "single" if len(cameras) == 1 else "per_image"
 
 
 def _key(images: ImageSet, conf: ExtractConfig) -> str:
