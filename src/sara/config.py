@@ -42,6 +42,9 @@ class ExtractConfig:
     camera_mode: str = "auto"  # auto | single | per_image | per_folder
     camera_params: str = ""  # known intrinsics, e.g. "fx,fy,cx,cy" for PINHOLE; empty = EXIF or prior
     default_focal_length_factor: float = 1.2  # COLMAP's prior: focal = factor * max(width, height)
+    # one shared camera without EXIF focal or camera_params: estimate its focal length from pairs of
+    # neighbouring images and use it where it is >= 2.5x the prior (long lenses; `sara.scoring.focal`)
+    estimate_focal: bool = True
     num_threads: int = -1
 
     def __post_init__(self) -> None:
@@ -403,6 +406,7 @@ RULES: dict[str, tuple[Any, str]] = {
     "extract.camera_mode": _choice("auto", "single", "per_image", "per_folder"),
     "extract.camera_params": _numbers_list(),
     "extract.default_focal_length_factor": _reals(0, 100, low_open=True),
+    "extract.estimate_focal": _flag(),
     "extract.num_threads": _THREADS,
     "retrieval.descriptor": _name(),
     "retrieval.num_neighbors": _ints(1),

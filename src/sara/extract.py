@@ -20,6 +20,7 @@ from .features import Keypoints, LocalFeatures, features_file_name, make_backend
 from .io import DamagedOutputError, OutputStateError, atomic_path, ensure_free_space, fingerprint, records
 from .io.h5 import H5_ERRORS, Features, features_digest, has_features, write_features
 from .io.images import ImageSet, set_aside
+from .scoring import focal
 
 logger = logging.getLogger(__name__)
 
@@ -144,10 +145,40 @@ def run(conf: ExtractConfig, images: ImageSet, out_dir: Path, *, executor: Execu
         readable = set_aside(readable, failed)
         _import_keypoints(db_path, h5_path, readable.names)
     info = _summary(counts)
+    if conf.estimate_focal and camera_mode == "single" and not conf.camera_params:
+        info["focal"] = _check_focal(db_path, h5_path, readable.names)
     info.update(camera_mode=camera_mode, backend=conf.backend, features=h5_path.name,
                 skipped={**unreadable, **failed}, time_s=time.perf_counter() - tic)
     records.mark_done(out_dir, STAGE, key, info, outputs=_outputs(db_path, h5_path))
     return h5_path
+
+
+def _check_focal(db_path: Path, h5_path: Path, names: list[str]) -> dict | None:
+    """Replace COLMAP's focal prior of the shared camera by an estimate from the images where that
+    is clearly longer (`sara.scoring.focal`); what was found goes into the stage record."""
+    camera = colmap.shared_camera(db_path)
+    if camera is None or camera.has_prior_focal_length:  # EXIF gave the focal length
+        return None
+    prior = float(camera.mean_focal_length())
+    found = focal.estimate_from_features(h5_path, names, camera.width, camera.height, prior)
+    if found is None:
+        logger.info("focal length: too few pairs of neighbouring images to check COLMAP's prior (%.0f px)", prior)
+        return {"prior_px": prior, "estimated_px": None, "applied": False}
+    applied = found.focal_px >= focal.LONGER_THAN_PRIOR * prior
+    if applied:
+        colmap.set_focal_length(db_path, camera.camera_id, found.focal_px)
+        logger.warning("focal length: the images say %.0f px (%.1f-degree field of view), %.1fx COLMAP's prior "
+                       "of %.0f px; starting from %.0f px (give extract.camera_params if you know it)",
+                       found.focal_px, _fov_deg(found.focal_px, camera.width, camera.height),
+                       found.focal_px / prior, prior, found.focal_px)
+    else:
+        logger.info("focal length: estimate %.0f px, prior %.0f px kept", found.focal_px, prior)
+    return {"prior_px": prior, "estimated_px": found.focal_px, "applied": applied, "num_pairs": found.num_pairs,
+            "cost": found.cost, "cost_at_prior": found.cost_at_prior}
+
+
+def _fov_deg(focal_px: float, width: int, height: int) -> float:
+    return float(np.degrees(2.0 * np.arctan(max(width, height) / (2.0 * focal_px))))
 
 
 def usable(images: ImageSet, out_dir: Path, *, warn: bool = False) -> ImageSet:

@@ -477,6 +477,40 @@ def cameras_by_image(db_path: Path) -> dict[str, pycolmap.Camera]:
         return {im.name: cams[im.camera_id] for im in db.read_all_images()}
 
 
+def shared_camera(db_path: Path) -> pycolmap.Camera | None:
+    """The database's camera when every image uses one and the same, else None."""
+    with open_database(db_path) as db:
+        cameras = db.read_all_cameras()
+    return cameras[0] if len(cameras) == 1 else None
+
+
+def set_focal_length(db_path: Path, camera_id: int, focal_px: float) -> None:
+    """Replace the focal length of one camera of the database (other parameters kept, still a guess
+    for bundle adjustment to refine: `has_prior_focal_length` stays as it was)."""
+    with open_database(db_path) as db:
+        camera = db.read_camera(camera_id)
+        for index in camera.focal_length_idxs():
+            camera.params[index] = focal_px
+        db.update_camera(camera)
+
+
+def estimate_fundamental(points0: np.ndarray, points1: np.ndarray, *, max_error_px: float,
+                         max_trials: int = 10000, seed: int = 0) -> tuple[np.ndarray, int] | None:
+    """COLMAP's LO-RANSAC fundamental matrix of (N, 2) pixel correspondences: (F, number of inliers)
+    with x1^T F x0 = 0, or None when it finds none."""
+    if len(points0) < 8:
+        return None
+    options = pycolmap.RANSACOptions()
+    options.max_error = max_error_px
+    options.max_num_trials = max_trials
+    options.random_seed = seed
+    result = pycolmap.estimate_fundamental_matrix(np.asarray(points0, dtype=np.float64),
+                                                  np.asarray(points1, dtype=np.float64), options)
+    if result is None:
+        return None
+    return np.asarray(result["F"], dtype=np.float64), int(np.sum(result["inlier_mask"]))
+
+
 def image_to_normalized(camera: pycolmap.Camera, xy_colmap: np.ndarray) -> np.ndarray:
     """(N, 2) pixels in COLMAP's convention -> (N, 2) normalized camera coordinates (undistorted)."""
     if len(xy_colmap) == 0:
