@@ -77,6 +77,8 @@ def learned_rows(path: Path) -> list[dict]:
     """Rows of a learned bench: its results.csv, or (a folder) results.csv plus finished methods."""
     bench_dir = path if path.is_dir() else path.parent
     features = next((k for k in FEATURES if bench_dir.name.startswith(k)), bench_dir.name)
+    if features in FEATURES and "1024" in bench_dir.name:  # -s extract.max_num_features=1024 (learned_bench.sh)
+        features += "1024"
     found = []
     if (bench_dir / "results.csv").exists():
         with (bench_dir / "results.csv").open() as f:
@@ -95,6 +97,11 @@ def learned_rows(path: Path) -> list[dict]:
                          "pairs": num(r["pairs"]), "match_s": num(r["match_s"]), "auc@1": num(r["auc@1"]),
                          "auc@5": num(r["auc@5"]), "auc@10": num(r["auc@10"])})
     return rows
+
+
+def label(features: str) -> str:
+    base = features.removesuffix("1024")
+    return FEATURES.get(base, base) + (" (1,024 kpts)" if features.endswith("1024") else "")
 
 
 def fmt(value: float | None, spec: str) -> str:
@@ -118,7 +125,7 @@ def main() -> None:
         print("| Features | Method | Reg. % | Models | Pairs | Pairs / N | Match (s) | s / pair | AUC@1 | AUC@5 "
               "| AUC@10 | Pairs / exh. | Match time / exh. |")
         print("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
-        for feat in FEATURES:
+        for feat in dict.fromkeys(r["features"] for r in mine):
             group = {r["method"]: r for r in mine if r["features"] == feat}
             ref = group.get("exhaustive")
             for method in METHODS:
@@ -128,7 +135,7 @@ def main() -> None:
                 pairs, match_s = r["pairs"], r["match_s"]
                 ratio_p = pairs / ref["pairs"] if ref and pairs else None
                 ratio_t = match_s / ref["match_s"] if ref and match_s and ref["match_s"] else None
-                print(f"| {FEATURES[feat]} | {method} | {fmt(r['registered_pct'], '.1f')} "
+                print(f"| {label(feat)} | {method} | {fmt(r['registered_pct'], '.1f')} "
                       f"| {fmt(r['num_components'], '.0f')} | {fmt(pairs, '.0f')} | {fmt(pairs / n if pairs else None, '.2f')} "
                       f"| {fmt(match_s, '.1f')} | {fmt(match_s / pairs if pairs and match_s else None, '.2f')} "
                       f"| {fmt(r['auc@1'], '.3f')} | {fmt(r['auc@5'], '.3f')} | {fmt(r['auc@10'], '.3f')} "
