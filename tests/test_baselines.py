@@ -188,3 +188,19 @@ def test_vocabtree_helpers():
     assert num_tree_words(1_600, 4096) == 100
     retrieved = [("b", "a"), ("a", "a"), ("a", "b"), ("a", "zz"), ("c", "a")]
     assert retrieval_pairs(retrieved, ["a", "b", "c"]) == [("a", "b"), ("a", "c")]
+
+
+def test_baseline_pairs_do_not_depend_on_saras_own_settings():
+    """Changing the scorer or the graph (a learned preset's budget, say) redoes SARA's pairs only."""
+    from sara.config import make_config
+    from sara.pipeline import pairs_key
+
+    changed = {"graph.max_pairs_per_image": 2.5, "score.min_inliers": 12}
+    for method in ("exhaustive", "retrieval", "sequential"):
+        base = make_config("sift-offline", {"pairs.method": method})
+        assert pairs_key(base, "x", None) == pairs_key(make_config("sift-offline", {"pairs.method": method, **changed}), "x", None)
+    sara = make_config("sift-offline")
+    assert pairs_key(sara, "x", None) != pairs_key(make_config("sift-offline", changed), "x", None)
+    retrieval = make_config("sift-offline", {"pairs.method": "retrieval"})
+    assert pairs_key(retrieval, "x", None) != pairs_key(
+        make_config("sift-offline", {"pairs.method": "retrieval", "retrieval.num_neighbors": 5}), "x", None)

@@ -117,7 +117,9 @@ def versions() -> dict[str, str]:
 def pairs_key(conf: PipelineConfig, extract_key: str, source_file: Path | None) -> str:
     data: dict[str, Any] = {"extract": extract_key, "pairs": conf.pairs.__dict__, "seed": conf.seed}
     if _uses_retrieval(conf):
-        data.update(retrieval=conf.retrieval.__dict__, score=conf.score.__dict__, graph=conf.graph.__dict__)
+        data.update(retrieval=conf.retrieval.__dict__)
+    if conf.pairs.method == "sara":  # the scorer and the graph: SARA's own
+        data.update(score=conf.score.__dict__, graph=conf.graph.__dict__)
     if source_file is not None:
         data["file"] = source_file.read_text(encoding="utf-8", errors="replace")
     return fingerprint(data)
