@@ -19,6 +19,7 @@
 #                         bm-moldGoldCape, exhaustive/retrieval/sara: the complete side-by-side comparison
 #                         that 2 CPU cores can finish in about an hour (2,048 keypoints: ~3 s per pair)
 #   aliked1024-small      the same 1,024 keypoints, the five smaller scenes, exhaustive/retrieval/sara
+#   aliked1024-small-sara SARA alone, as aliked1024-small, into a new folder (after the learned budget changed)
 #   disk1024-headline-fast, disk1024-headline, disk1024-small
 #                         DISK+LightGlue at 1,024 keypoints, as the three jobs above
 #   xfeat-templering      XFeat+LighterGlue, middlebury-templeRing alone, exhaustive/retrieval/sara
@@ -78,6 +79,8 @@ case "${1:-}" in
                           bench aliked-lightglue aliked1024-lightglue-big sara,retrieval,exhaustive default "$big" ;;
     aliked1024-small)     EXTRA=(-s extract.max_num_features=1024)
                           bench aliked-lightglue aliked1024-lightglue-small exhaustive,retrieval,sara 8 "${small[@]}" ;;
+    aliked1024-small-sara) EXTRA=(-s extract.max_num_features=1024)  # SARA again (a later budget), new folder
+                          bench aliked-lightglue aliked1024-lightglue-small-v2 sara 8 "${small[@]}" ;;
     disk1024-headline-fast) EXTRA=(-s extract.max_num_features=1024)
                           bench disk-lightglue disk1024-lightglue-big sara,retrieval default "$big" ;;
     disk1024-headline)    EXTRA=(-s extract.max_num_features=1024)
