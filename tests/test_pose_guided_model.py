@@ -141,3 +141,20 @@ def test_continuing_from_a_model_without_points_on_the_new_matches(model: Path, 
                          input_model=bare, progress=False)
     assert len(registered_images(sparse / "0")) == 8
     assert "mapping from scratch too" not in caplog.text
+
+
+def test_a_model_inside_a_larger_one_is_not_written(model: Path, tmp_path: Path):
+    """[8, 5] where the 5 views are also in the 8-view model: one model, not two."""
+    from sara.colmap import write_models_by_size
+
+    full = pycolmap.Reconstruction(str(model / "sparse" / "0"))
+    part = pycolmap.Reconstruction(str(model / "sparse" / "0"))
+    for image_id in sorted(part.images)[5:]:
+        part.deregister_frame(part.images[image_id].frame_id)
+    other = pycolmap.Reconstruction(str(model / "sparse" / "0"))
+    for image_id in sorted(other.images)[:-2]:
+        other.deregister_frame(other.images[image_id].frame_id)
+    assert write_models_by_size(tmp_path, {0: part, 1: full}) == [8]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["0"]
+    # a model with a view of its own is kept
+    assert write_models_by_size(tmp_path, {0: part, 1: other}) == [5, 2]

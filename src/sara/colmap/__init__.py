@@ -684,10 +684,21 @@ def cameras_and_poses(model_dir: Path) -> dict[str, tuple[np.ndarray, np.ndarray
 
 
 def write_models_by_size(folder: Path, recs: dict[int, pycolmap.Reconstruction]) -> list[int]:
-    """Write mapper output as `folder/0, 1, ...`, 0 the largest; returns registered images per model."""
+    """Write mapper output as `folder/0, 1, ...`, 0 the largest; returns registered images per model.
+
+    A model whose images are all in a larger one is left out: continuing from an input model, COLMAP's
+    mapper can build a new model holding every view and keep the input beside it.
+    """
     import shutil
 
-    order = sorted(recs.items(), key=lambda kv: (-kv[1].num_reg_images(), kv[0]))
+    order, seen = [], set()
+    for key, rec in sorted(recs.items(), key=lambda kv: (-kv[1].num_reg_images(), kv[0])):
+        names = {im.name for im in rec.images.values() if im.has_pose}
+        if names and names <= seen:
+            logger.info("map: left out a model of %d views that a larger model holds as well", len(names))
+            continue
+        seen |= names
+        order.append((key, rec))
     for sub in list(Path(folder).iterdir()):
         if sub.is_dir():
             shutil.rmtree(sub)
