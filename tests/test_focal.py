@@ -82,3 +82,18 @@ def test_a_long_lens_crop_of_a_real_scene_gets_a_longer_focal_length(tmp_path: P
                 progress=False)
     assert "focal" not in records.done_info(off, extract.STAGE)
     assert abs(shared_camera(off / extract.DB_NAME).mean_focal_length() - prior) < 1.0
+
+
+def test_the_new_setting_keeps_earlier_extractions_valid(tmp_path: Path):
+    """Features extracted before `estimate_focal` existed keep their key at its default."""
+    from sara.config import ExtractConfig
+    from sara.extract import _key
+    from sara.io import fingerprint
+    from sara.io.images import scan_images
+
+    for k in range(2):
+        Image.fromarray(np.random.default_rng(k).integers(0, 255, (48, 64, 3), dtype=np.uint8)).save(tmp_path / f"{k}.png")
+    images = scan_images(tmp_path, progress=False)
+    before = {k: v for k, v in ExtractConfig().__dict__.items() if k != "estimate_focal"}
+    assert _key(images, ExtractConfig()) == fingerprint({"images": images.fingerprint_data(), "conf": before})
+    assert _key(images, ExtractConfig(estimate_focal=False)) != _key(images, ExtractConfig())

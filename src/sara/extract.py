@@ -76,8 +76,14 @@ def resolve_camera_mode(images: ImageSet, conf: ExtractConfig) -> str:
     return "single" if len(cameras) == 1 else "per_image"
 
 
+#: settings added after outputs existed, with their defaults: at that default they stay out of the
+#: key, so features extracted by an earlier sara are still used (not refused as "other settings")
+_LATER_SETTINGS = {"estimate_focal": True}
+
+
 def _key(images: ImageSet, conf: ExtractConfig) -> str:
-    return fingerprint({"images": images.fingerprint_data(), "conf": conf.__dict__})
+    settings = {k: v for k, v in conf.__dict__.items() if not (k in _LATER_SETTINGS and v == _LATER_SETTINGS[k])}
+    return fingerprint({"images": images.fingerprint_data(), "conf": settings})
 
 
 def _check_existing_database(db_path: Path, images: ImageSet) -> bool:
