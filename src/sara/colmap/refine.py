@@ -86,6 +86,18 @@ def read_geometry(model_dir: Path) -> ModelGeometry:
     )
 
 
+def _triangulate(model_dir: Path, db_path: Path, image_dir: Path, work_dir: Path, *, clear_points: bool,
+                 num_threads: int, seed: int) -> pycolmap.Reconstruction:
+    """COLMAP's point triangulator over every match of the database, the model's poses fixed."""
+    options = pycolmap.IncrementalPipelineOptions()
+    options.num_threads = num_threads
+    options.random_seed = seed
+    options.triangulation.random_seed = seed
+    return pycolmap.triangulate_points(pycolmap.Reconstruction(str(model_dir)), str(db_path), str(image_dir),
+                                       str(work_dir), clear_points=clear_points, options=options,
+                                       refine_intrinsics=False)
+
+
 def triangulate_new_matches(model_dir: Path, db_path: Path, image_dir: Path, out_dir: Path, *,
                             num_threads: int = -1, seed: int = 0) -> int:
     """Write `model_dir` with its points completed from every match of `db_path` (poses fixed, the
@@ -94,16 +106,10 @@ def triangulate_new_matches(model_dir: Path, db_path: Path, image_dir: Path, out
     Continuing COLMAP's mapper straight from a model written before new pairs were matched left
     views out that those pairs join to it (templeSparseRing: 13 of 16 registered, 16 after this).
     """
-    rec = pycolmap.Reconstruction(str(model_dir))
     out_dir = Path(out_dir)
     shutil.rmtree(out_dir, ignore_errors=True)
     out_dir.mkdir(parents=True)
-    options = pycolmap.IncrementalPipelineOptions()
-    options.num_threads = num_threads
-    options.random_seed = seed
-    options.triangulation.random_seed = seed
-    rec = pycolmap.triangulate_points(rec, str(db_path), str(image_dir), str(out_dir), clear_points=False,
-                                      options=options, refine_intrinsics=False)
+    rec = _triangulate(model_dir, db_path, image_dir, out_dir, clear_points=False, num_threads=num_threads, seed=seed)
     rec.write(str(out_dir))
     return int(rec.num_points3D())
 
@@ -117,17 +123,11 @@ def triangulate_and_adjust(model_dir: Path, db_path: Path, image_dir: Path, out_
     adjustment of poses and points (focal length and radial distortion refined, principal point
     fixed, as in COLMAP's mapper). Writes the result to `out_dir` (replaced); returns counts.
     """
-    rec = pycolmap.Reconstruction(str(model_dir))
     out_dir = Path(out_dir)
     tmp = out_dir.with_name(out_dir.name + ".partial")
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
-    options = pycolmap.IncrementalPipelineOptions()
-    options.num_threads = num_threads
-    options.random_seed = seed
-    options.triangulation.random_seed = seed
-    rec = pycolmap.triangulate_points(rec, str(db_path), str(image_dir), str(tmp), clear_points=True,
-                                      options=options, refine_intrinsics=False)
+    rec = _triangulate(model_dir, db_path, image_dir, tmp, clear_points=True, num_threads=num_threads, seed=seed)
     pycolmap.bundle_adjustment(rec, pycolmap.BundleAdjustmentOptions())
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
