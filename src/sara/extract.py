@@ -32,11 +32,6 @@ class OutputMismatchError(OutputStateError, ValueError):
     """An output folder holds results made from other inputs or settings."""
 
 
-def exif_focal_mm(path: Path) -> float | None:
-    """The EXIF focal length in mm, or None."""
-    return exif_camera(path)[2]
-
-
 def exif_camera(path: Path) -> tuple[str | None, str | None, float | None]:
     """(make, model, focal length in mm) from EXIF, each None where absent or unreadable."""
     from PIL import Image

@@ -127,7 +127,6 @@ def _extend(conf: MapConfig, db_path: Path, images_root: Path, tmp: Path, seed: 
         scratch_recs, _, _ = _map(conf, db_path, images_root, tmp / "scratch", seed, progress)
         if max((r.num_reg_images() for r in scratch_recs.values()), default=0) > extended:
             recs = scratch_recs
-    shutil.rmtree(start, ignore_errors=True)
     return recs, num_images, time.perf_counter() - tic
 
 

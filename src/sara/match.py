@@ -186,6 +186,10 @@ def _only_additions(db_path: Path, pairs: list[Pair], ids: dict[str, int]) -> bo
         return all((i, j) in wanted for i, j, _ in colmap.verified_image_pairs(db))
 
 
+#: chunks per worker at least, when there are few pairs for the executor's workers
+CHUNKS_PER_WORKER = 4
+
+
 def _match_all(conf: MatchConfig, matcher: Matcher, features_backend: str, features_path: Path, pairs: list[Pair],
                names: dict[str, int], work: Path, out_dir: Path, key: str, conf_key: str, executor: Executor | None,
                progress: bool) -> tuple[float, int]:
@@ -226,10 +230,6 @@ def _match_all(conf: MatchConfig, matcher: Matcher, features_backend: str, featu
                                                               "beside": beside, "conf_key": conf_key})
     chunk_path.unlink(missing_ok=True)
     return earlier_s + time.perf_counter() - tic, len(todo)
-
-
-#: chunks per worker at least, when there are few pairs for the executor's workers
-CHUNKS_PER_WORKER = 4
 
 
 @dataclass(frozen=True)

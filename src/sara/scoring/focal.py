@@ -70,13 +70,13 @@ def nearby_pairs(names: list[str], max_pairs: int = MAX_PAIRS) -> list[tuple[str
 
 def focal_costs(fundamentals: list[np.ndarray], focals: np.ndarray, principal: tuple[float, float]) -> np.ndarray:
     """(len(focals), len(fundamentals)) cost (s1 - s2) / s1 of K^T F K for each focal length and pair."""
-    costs = np.empty((len(focals), len(fundamentals)))
-    for row, f in enumerate(focals):
-        K = np.array([[f, 0.0, principal[0]], [0.0, f, principal[1]], [0.0, 0.0, 1.0]])
-        for col, F in enumerate(fundamentals):
-            s = np.linalg.svd(K.T @ F @ K, compute_uv=False)
-            costs[row, col] = (s[0] - s[1]) / max(s[0], 1e-300)
-    return costs
+    F = np.stack(fundamentals)  # (P, 3, 3)
+    K = np.zeros((len(focals), 1, 3, 3))
+    K[:, 0, 0, 0] = K[:, 0, 1, 1] = focals
+    K[:, 0, :2, 2] = principal
+    K[:, 0, 2, 2] = 1.0
+    s = np.linalg.svd(np.swapaxes(K, -1, -2) @ F @ K, compute_uv=False)  # (len(focals), P, 3), decreasing
+    return (s[..., 0] - s[..., 1]) / np.maximum(s[..., 0], 1e-300)
 
 
 def estimate(fundamentals: list[np.ndarray], width: int, height: int, prior_px: float) -> FocalEstimate | None:
