@@ -9,7 +9,11 @@ the same load weighs on every method. From the sample means it *estimates* each 
 matcher time (pairs x mean per-pair time), labelled as an estimate.
 
     python scripts/learned_pair_costs.py BENCH/SCENE [--methods exhaustive,retrieval,sara] \
-        [--samples 60] [--seed 0] [--json out.json]
+        [--samples 60] [--seed 0] [--device cpu] [--json out.json]
+
+`--samples 0` times every pair of every method (then the totals are measured, not estimated: on a
+GPU, where a pair takes milliseconds, that is the way to use it). `--device cuda` runs the matcher
+on the GPU; each timed call ends when the matches are back on the host.
 
 BENCH/SCENE is a scene folder of a `sara bench` run with a learned preset; the pairs of method M
 are read from BENCH/SCENE/M/pairs.txt when it exists, else (exhaustive) all pairs of the images.
@@ -46,9 +50,10 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("scene_dir", type=Path, help="BENCH/<scene> of a sara bench run")
     parser.add_argument("--methods", default="exhaustive,retrieval,sara")
-    parser.add_argument("--samples", type=int, default=60, help="pairs timed per method")
+    parser.add_argument("--samples", type=int, default=60, help="pairs timed per method (0: all of them)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--device", default="cpu", help="cpu, cuda or auto (where the matcher runs)")
     parser.add_argument("--json", type=Path)
     args = parser.parse_args()
     torch.set_num_threads(args.threads)  # this script only
@@ -68,8 +73,8 @@ def main() -> None:
         else:
             raise SystemExit(f"{path} is missing")
     rng = random.Random(args.seed)
-    samples = {m: rng.sample(p, min(args.samples, len(p))) for m, p in pairs.items()}
-    matcher = make_matcher(MatchConfig(device="cpu"), backend)
+    samples = {m: rng.sample(p, min(args.samples, len(p)) if args.samples > 0 else len(p)) for m, p in pairs.items()}
+    matcher = make_matcher(MatchConfig(device=args.device), backend)
     warm = next(iter(samples.values()))[0]
     matcher.match(cache.get(warm[0]), cache.get(warm[1]))  # warm-up, not timed
     times: dict[str, list[float]] = {m: [] for m in samples}
@@ -95,7 +100,10 @@ def main() -> None:
                      "cpu_mean_s": statistics.mean(cpu[method]), "matches_mean": statistics.mean(found[method]),
                      "estimated_total_s": mean * len(pairs[method])})
     reference = next((r for r in rows if r["method"] == "exhaustive"), None)
-    print(f"{h5_path} ({backend} + {matcher.name}), {args.threads} torch thread(s), seed {args.seed}, "
+    where = torch.cuda.get_device_name() if args.device != "cpu" and torch.cuda.is_available() else "CPU"
+    every = all(len(s) == len(pairs[m]) for m, s in samples.items())
+    print(f"{h5_path} ({backend} + {matcher.name}), {where}, {args.threads} torch thread(s), seed {args.seed}, "
+          f"{'every pair timed (totals measured)' if every else 'sampled (totals estimated)'}, "
           f"load average before/after: {tuple(round(v, 1) for v in load_before)} / "
           f"{tuple(round(v, 1) for v in load_after)}")
     print("| Method | Pairs | Sampled | Mean s/pair | Median s/pair | p90 s/pair | Mean CPU s/pair | Matches/pair (raw) "
@@ -104,10 +112,10 @@ def main() -> None:
     for r in rows:
         ratio = reference["estimated_total_s"] / r["estimated_total_s"] if reference else float("nan")
         r["exhaustive_over_method"] = ratio if reference else None
-        print(f"| {r['method']} | {r['pairs']} | {r['sampled']} | {r['mean_s']:.3f} | {r['median_s']:.3f} "
-              f"| {r['p90_s']:.3f} | {r['cpu_mean_s']:.3f} | {r['matches_mean']:.0f} | {r['estimated_total_s']:.0f} | {ratio:.1f} |")
+        print(f"| {r['method']} | {r['pairs']} | {r['sampled']} | {r['mean_s']:.4f} | {r['median_s']:.4f} "
+              f"| {r['p90_s']:.4f} | {r['cpu_mean_s']:.4f} | {r['matches_mean']:.0f} | {r['estimated_total_s']:.1f} | {ratio:.1f} |")
     if args.json:
-        args.json.write_text(json.dumps({"features": str(h5_path), "backend": backend, "matcher": matcher.name,
+        args.json.write_text(json.dumps({"features": str(h5_path), "backend": backend, "matcher": matcher.name, "device": where,
                                          "threads": args.threads, "seed": args.seed, "rows": rows,
                                          "load_before": load_before, "load_after": load_after}, indent=2) + "\n")
 

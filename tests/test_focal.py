@@ -86,14 +86,18 @@ def test_a_long_lens_crop_of_a_real_scene_gets_a_longer_focal_length(tmp_path: P
 
 def test_the_new_setting_keeps_earlier_extractions_valid(tmp_path: Path):
     """Features extracted before `estimate_focal` existed keep their key at its default."""
+    from sara import extract
     from sara.config import ExtractConfig
     from sara.extract import _key
-    from sara.io import fingerprint
+    from sara.io import fingerprint, records
     from sara.io.images import scan_images
 
     for k in range(2):
         Image.fromarray(np.random.default_rng(k).integers(0, 255, (48, 64, 3), dtype=np.uint8)).save(tmp_path / f"{k}.png")
     images = scan_images(tmp_path, progress=False)
+    out = tmp_path / "out"
     before = {k: v for k, v in ExtractConfig().__dict__.items() if k != "estimate_focal"}
-    assert _key(images, ExtractConfig()) == fingerprint({"images": images.fingerprint_data(), "conf": before})
-    assert _key(images, ExtractConfig(estimate_focal=False)) != _key(images, ExtractConfig())
+    old_key = fingerprint({"images": images.fingerprint_data(), "conf": before})  # as sara keyed it then
+    records.mark_done(out, extract.STAGE, old_key)
+    assert _key(images, ExtractConfig(), out, progress=False) == old_key
+    assert _key(images, ExtractConfig(estimate_focal=False), out, progress=False) != old_key

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import shutil
 import subprocess
 import sys
@@ -12,6 +13,8 @@ import pytest
 from PIL import Image
 
 from sara.config import make_config
+from sara.io import images as images_module
+from sara.io import records
 from sara.extract import OutputMismatchError
 from sara.io.images import check_image, scan_images
 from sara.io import OutputLock, OutputLockedError
@@ -114,6 +117,39 @@ def test_other_image_set_or_settings_refused(tmp_path: Path, synthetic_scene):
     with pytest.raises(OutputMismatchError, match="--overwrite"):
         run(make_config("sift-offline"), set_a, out, progress=False, stop_after="extract")
     assert (out / "features-sift.h5").read_bytes() == before  # untouched
+
+
+def test_features_follow_the_images_content_not_their_times(tmp_path: Path, synthetic_scene, monkeypatch):
+    """The same images copied elsewhere, with new modification times, keep their features (each
+    file read once to check its bytes, then not again); an image whose pixels changed does not."""
+    src = _scene_images(synthetic_scene)[:3]
+    first, moved = tmp_path / "first", tmp_path / "moved"
+    for folder in (first, moved):
+        folder.mkdir()
+        for p in src:
+            shutil.copyfile(p, folder / p.name)
+    for p in moved.iterdir():
+        os.utime(p, (p.stat().st_atime + 86400, p.stat().st_mtime + 86400))
+    out = tmp_path / "out"
+    conf = make_config("sift-offline", {"extract.max_num_features": 2000})
+    run(conf, first, out, progress=False, stop_after="extract")
+    record, features = records.read_record(out, "extract"), (out / "features-sift.h5").read_bytes()
+    hashed: list[Path] = []
+    sha256 = images_module._sha256
+    monkeypatch.setattr(images_module, "_sha256", lambda path: hashed.append(path) or sha256(path))
+    run(conf, moved, out, progress=False, stop_after="extract")
+    assert records.read_record(out, "extract") == record  # not redone: same key, same record
+    assert sorted(p.name for p in hashed) == sorted(p.name for p in src)
+    hashed.clear()
+    run(conf, moved, out, progress=False, stop_after="extract")
+    assert hashed == []  # sizes and times unchanged since: the digests are remembered
+    changed = moved / src[0].name
+    pixels = np.array(Image.open(changed).convert("RGB"))
+    pixels[:8, :8] = 255 - pixels[:8, :8]
+    Image.fromarray(pixels).save(changed)
+    with pytest.raises(OutputMismatchError, match="other images or other extraction settings"):
+        run(conf, moved, out, progress=False, stop_after="extract")
+    assert (out / "features-sift.h5").read_bytes() == features
 
 
 def test_second_run_on_same_output_is_refused(tmp_path: Path, synthetic_scene):

@@ -19,7 +19,7 @@ from .execute import Executor, SerialExecutor, single_threaded_torch_in_worker
 from .features import Keypoints, LocalFeatures, features_file_name, make_backend
 from .io import DamagedOutputError, OutputStateError, atomic_path, ensure_free_space, fingerprint, records
 from .io.h5 import H5_ERRORS, Features, features_digest, has_features, write_features
-from .io.images import ImageSet, set_aside
+from .io.images import ImageSet, content_digests, set_aside
 from .scoring import focal
 
 logger = logging.getLogger(__name__)
@@ -76,9 +76,22 @@ def resolve_camera_mode(images: ImageSet, conf: ExtractConfig) -> str:
 _LATER_SETTINGS = {"estimate_focal": True}
 
 
-def _key(images: ImageSet, conf: ExtractConfig) -> str:
+#: digests of the images' bytes, kept between runs (see `sara.io.images.content_digests`)
+DIGESTS_NAME = "image-digests.json"
+
+
+def _key(images: ImageSet, conf: ExtractConfig, out_dir: Path, *, progress: bool = True) -> str:
+    """The stage key: the images' names and contents and the settings.
+
+    Features made by an earlier sara, keyed by the images' sizes and modification times, keep
+    that key while those are unchanged.
+    """
     settings = {k: v for k, v in conf.__dict__.items() if not (k in _LATER_SETTINGS and v == _LATER_SETTINGS[k])}
-    return fingerprint({"images": images.fingerprint_data(), "conf": settings})
+    record = records.read_record(out_dir, STAGE)
+    if record is not None and record.get("key") == fingerprint({"images": images.fingerprint_data(), "conf": settings}):
+        return record["key"]
+    digests = content_digests(images, out_dir / ".sara" / DIGESTS_NAME, progress=progress)
+    return fingerprint({"images": [[name, digests[name]] for name in images.names], "conf": settings})
 
 
 def _check_existing_database(db_path: Path, images: ImageSet) -> bool:
@@ -106,7 +119,7 @@ def run(conf: ExtractConfig, images: ImageSet, out_dir: Path, *, executor: Execu
     """
     out_dir = Path(out_dir)
     db_path, h5_path = out_dir / DB_NAME, out_dir / features_file_name(conf)
-    key = _key(images, conf)
+    key = _key(images, conf, out_dir, progress=progress)
     tic = time.perf_counter()
     if not overwrite and records.is_done(out_dir, STAGE, key) and _outputs_intact(out_dir, db_path, h5_path):
         logger.info("extract: features up to date, skipping")

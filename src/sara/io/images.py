@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import os
 import unicodedata
@@ -10,6 +11,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
+from . import read_json, write_json_atomic
 from .pairs import name_problem
 
 logger = logging.getLogger(__name__)
@@ -34,12 +36,63 @@ class ImageSet:
     orientation: dict[str, int] = field(default_factory=dict)  # EXIF orientation, only where not 1
 
     def fingerprint_data(self) -> list[tuple[str, int, int]]:
-        """What identifies the set for caches: names and file sizes in bytes and mtimes."""
+        """Names, file sizes in bytes and modification times: what identified the set for the
+        caches of sara before `content_digests` (kept to recognise outputs made then)."""
         out = []
         for name in self.names:
             st = (self.root / name).stat()
             out.append((name, st.st_size, int(st.st_mtime)))
         return out
+
+
+def _sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(2**20), b""):
+            h.update(block)
+    return h.hexdigest()[:24]
+
+
+def content_digests(images: ImageSet, cache_path: Path, *, progress: bool = True) -> dict[str, str]:
+    """name -> a digest of the image file's bytes, for every image of the set.
+
+    What identifies an image for the caches is its content, not its modification time: a folder
+    copied or restored elsewhere (new times, same bytes) keeps its features. Hashing reads every
+    file once; `cache_path` (JSON, name -> [size, mtime_ns, digest]) remembers the digests, and a
+    file whose size and modification time are those of its entry is not read again.
+    """
+    cache_path = Path(cache_path)
+    try:
+        cached = read_json(cache_path) if cache_path.exists() else {}
+    except (OSError, ValueError, UnicodeDecodeError):  # a cache cut short or damaged: hash again
+        cached = {}
+    if not isinstance(cached, dict):
+        cached = {}
+    digests: dict[str, str] = {}
+    entries: dict[str, list] = {}
+    todo: list[tuple[str, int, int]] = []
+    for name in images.names:
+        try:
+            st = (images.root / name).stat()
+        except OSError as exc:  # gone since the scan: set aside later, by the extractor
+            digests[name] = f"unreadable: {exc.strerror}"
+            continue
+        entry = cached.get(name)
+        if isinstance(entry, list) and len(entry) == 3 and entry[:2] == [st.st_size, st.st_mtime_ns]:
+            digests[name], entries[name] = entry[2], entry
+        else:
+            todo.append((name, st.st_size, st.st_mtime_ns))
+    for name, size, mtime_ns in tqdm(todo, desc="hash images", unit="img", disable=not progress or len(todo) < 100):
+        try:
+            digests[name] = _sha256(images.root / name)
+        except OSError as exc:
+            digests[name] = f"unreadable: {exc.strerror}"
+            continue
+        entries[name] = [size, mtime_ns, digests[name]]
+    if todo or len(entries) != len(cached):
+        cache_path.parent.mkdir(parents=True, exist_ok=True)
+        write_json_atomic(cache_path, entries)
+    return digests
 
 
 def list_image_files(root: Path, *, recursive: bool = False) -> list[str]:
