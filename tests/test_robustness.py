@@ -13,11 +13,10 @@ import pytest
 from PIL import Image
 
 from sara.config import make_config
-from sara.io import images as images_module
-from sara.io import records
 from sara.extract import OutputMismatchError
+from sara.io import OutputLock, OutputLockedError, records
+from sara.io import images as images_module
 from sara.io.images import check_image, scan_images
-from sara.io import OutputLock, OutputLockedError
 from sara.pipeline import run
 
 
