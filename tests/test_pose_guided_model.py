@@ -6,11 +6,12 @@ from __future__ import annotations
 from itertools import combinations
 from pathlib import Path
 
+import h5py
 import numpy as np
 import pycolmap
 import pytest
 
-from sara.colmap.refine import read_geometry, triangulate_and_adjust
+from sara.colmap.refine import TrackExtension, extend_tracks, read_geometry, triangulate_and_adjust
 from sara.config import make_config
 from sara.pairs import PairContext
 from sara.pairs import pose_guided as round_
@@ -54,7 +55,7 @@ def test_read_geometry_gives_poses_intrinsics_and_tracks(model: Path):
 
 def test_triangulate_and_adjust_keeps_poses_and_points(model: Path, tmp_path: Path):
     counts = triangulate_and_adjust(model / "sparse" / "0", model / "database.db", model / "images", tmp_path / "out")
-    assert counts == {"num_points3d": 200.0, "num_registered": 8.0}
+    assert counts == {"num_points3d": 200.0, "num_registered": 8.0, "observations_added": 0.0}
     before, after = read_geometry(model / "sparse" / "0"), read_geometry(tmp_path / "out")
     assert after.names == before.names
     assert np.allclose(after.centers, before.centers, atol=1e-3 * np.ptp(before.centers))
@@ -63,7 +64,8 @@ def test_triangulate_and_adjust_keeps_poses_and_points(model: Path, tmp_path: Pa
 def test_round_chooses_unmatched_pairs_within_its_budget_once(model: Path, tmp_path: Path):
     names = read_geometry(model / "sparse" / "0").names
     conf = make_config("sift-offline", ON)
-    ctx = PairContext(names=names, images_root=model / "images", features_path=tmp_path / "none.h5",
+    features = _features_of(pycolmap.Reconstruction(str(model / "sparse" / "0")), tmp_path / "features.h5")
+    ctx = PairContext(names=names, images_root=model / "images", features_path=features,
                       db_path=model / "database.db", out_dir=tmp_path, conf=conf, progress=False)
     chain = [(names[k], names[k + 1]) for k in range(4)]
     extra, info = round_.select_extra(ctx, chain, model / "sparse" / "0")
@@ -158,3 +160,53 @@ def test_a_model_inside_a_larger_one_is_not_written(model: Path, tmp_path: Path)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["0"]
     # a model with a view of its own is kept
     assert write_models_by_size(tmp_path, {0: part, 1: other}) == [5, 2]
+
+
+def _features_of(rec: pycolmap.Reconstruction, path: Path, *, seed: int = 0) -> Path:
+    """A features file for the model's keypoints (hloc's pixel convention): every 3D point gets a
+    random unit descriptor that its observations carry with a little noise; other keypoints get
+    descriptors of their own."""
+    from sara.io.h5 import Features, write_features
+
+    rng = np.random.default_rng(seed)
+    point_desc = {pid: rng.normal(size=64) for pid in rec.point3D_ids()}
+    with h5py.File(path, "w") as h5:
+        for image in rec.images.values():
+            xy = np.array([p.xy for p in image.points2D], dtype=np.float32).reshape(-1, 2) - 0.5
+            desc = rng.normal(size=(len(xy), 64))
+            for k, p in enumerate(image.points2D):
+                if p.has_point3D():
+                    desc[k] = point_desc[p.point3D_id] + 0.1 * rng.normal(size=64)
+            desc /= np.linalg.norm(desc, axis=1, keepdims=True)
+            write_features(h5, image.name, Features(xy, desc.astype(np.float32), np.ones(len(xy), np.float32),
+                                                    (320, 240)))
+    return path
+
+
+def test_extend_tracks_finds_the_observations_a_model_lost(model: Path, tmp_path: Path):
+    """Observations taken out of a model come back, each on its own keypoint; a keypoint whose
+    descriptor is another's does not join a track."""
+    rec = pycolmap.Reconstruction(str(model / "sparse" / "0"))
+    features = _features_of(rec, tmp_path / "features.h5")
+    rng = np.random.default_rng(1)
+    removed = set()
+    for pid in sorted(rec.point3D_ids()):
+        elements = list(rec.points3D[pid].track.elements)
+        for element in rng.choice(elements, size=2, replace=False):
+            removed.add((element.image_id, element.point2D_idx, pid))
+            rec.delete_observation(element.image_id, element.point2D_idx)
+    assert rec.compute_num_observations() == 1600 - len(removed)
+    added = extend_tracks(rec, features, TrackExtension(max_view_angle_deg=180.0))
+    found = {(e.image_id, e.point2D_idx, pid) for pid in rec.point3D_ids() for e in rec.points3D[pid].track.elements}
+    assert added == len(removed) == 400 and removed <= found
+
+    # the same with the removed keypoints' descriptors scrambled: nothing joins
+    rec = pycolmap.Reconstruction(str(model / "sparse" / "0"))
+    for image_id, idx, _ in removed:
+        rec.delete_observation(image_id, idx)
+    with h5py.File(features, "r+") as h5:
+        for image_id, idx, _ in removed:
+            grp = h5[rec.images[image_id].name]["descriptors"]
+            column = rng.normal(size=grp.shape[0])
+            grp[:, idx] = column / np.linalg.norm(column)
+    assert extend_tracks(rec, features, TrackExtension(max_view_angle_deg=180.0)) == 0

@@ -212,6 +212,15 @@ class GraphConfig:
     pose_guided_max_view_angle_deg: float = 45.0
     """A point counts as covisible only if the two views see it from directions at most this far
     apart (degrees): SIFT seldom matches across wider angles."""
+    extend_tracks: bool = True
+    """When the pose-guided round refines the model, first add to its tracks the keypoints that
+    observe its 3D points without a match saying so: each view against the points it should see,
+    a keypoint within `extend_tracks_radius_px` of the projection whose descriptor passes COLMAP's
+    SIFT matching tests against the track's (`sara.colmap.refine.extend_tracks`). Longer tracks
+    for the final bundle adjustment without matching more pairs (docs/ACCURACY.md, section 12)."""
+    extend_tracks_radius_px: float = 1.5
+    """How far from a point's projection a keypoint may be to join its track (pixels): 1.0 and 2.0
+    measured worse on some of the six shared scenes (docs/ACCURACY.md, section 12)."""
     max_pairs_per_image: float = 4.0
     """Cap on the pairs of all rounds together (selection, repair, pose-guided), per image."""
     max_pairs_fraction: float = 0.25
@@ -468,6 +477,8 @@ RULES: dict[str, tuple[Any, str]] = {
     "graph.pose_guided_pairs_per_image": _reals(0),
     "graph.pose_guided_min_points": _ints(1),
     "graph.pose_guided_max_view_angle_deg": _reals(0, 180, low_open=True),
+    "graph.extend_tracks": _flag(),
+    "graph.extend_tracks_radius_px": _reals(0, low_open=True),
     "graph.max_pairs_per_image": _reals(0),
     "graph.max_pairs_fraction": _reals(0, 1),
     "graph.densify": _flag(),

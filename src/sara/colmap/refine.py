@@ -7,7 +7,10 @@ The pycolmap calls of SARA's pose-guided round (`sara.pairs.pose_guided`) live h
 - `triangulate_new_matches`: the same triangulator keeping the model's points, so that a mapper
   continuing from the model finds 3D points on the features that newly matched views share with it;
 - `triangulate_and_adjust`: COLMAP's point triangulator with the poses of a model held fixed
-  (`pycolmap.triangulate_points`), then a global bundle adjustment that frees the poses again.
+  (`pycolmap.triangulate_points`), optionally `extend_tracks`, then a global bundle adjustment that
+  frees the poses again;
+- `extend_tracks`: longer tracks without matching more pairs: each view's keypoints matched against
+  the 3D points the model says it sees (projection, then descriptors).
 
 Conventions (COLMAP's): poses are ``cam_from_world`` (``x_cam = R @ X + t``), pixels have the
 centre of the top-left pixel at (0.5, 0.5).
@@ -22,6 +25,9 @@ from pathlib import Path
 
 import numpy as np
 import pycolmap
+from scipy.spatial import cKDTree
+
+from ..io.h5 import FeatureCache
 
 logger = logging.getLogger(__name__)
 
@@ -114,14 +120,177 @@ def triangulate_new_matches(model_dir: Path, db_path: Path, image_dir: Path, out
     return int(rec.num_points3D())
 
 
+@dataclass(frozen=True)
+class TrackExtension:
+    """How `extend_tracks` accepts a keypoint as a new observation of a 3D point.
+
+    The keypoint must be one of the two nearest free keypoints (no 3D point yet) within
+    `radius_px` of the point's projection; its descriptor distance (unit vectors, L2) to the
+    nearest descriptor of the track at most `max_distance`, and below `max_ratio` times that of the
+    other candidate keypoint when there are two (COLMAP's SIFT matching uses 0.7 and 0.8); the view
+    must see the point from a direction at most `max_view_angle_deg` from a view that observes it.
+    """
+
+    radius_px: float = 1.5
+    max_distance: float = 0.7
+    max_ratio: float = 0.8
+    max_view_angle_deg: float = 45.0
+    #: larger models are left as they are: observation descriptor values held in memory (float32),
+    #: and views x points projected
+    max_values: int = 2**28
+    max_projections: int = 5 * 10**8
+
+
+def extend_tracks(rec: pycolmap.Reconstruction, features_path: Path,
+                  ext: TrackExtension = TrackExtension()) -> int:
+    """Add to the tracks of `rec` the keypoints of registered views that observe its 3D points
+    without a match saying so; returns the number of observations added.
+
+    Each view is compared with the points it should see (in front of it, inside the image, seen
+    from a similar direction by a view of the track): the same test as a descriptor match, limited
+    to a keypoint at the point's projection. No pair is matched; the tracks get the observations
+    that exhaustive matching would have found, which the bundle adjustment that follows uses.
+    Keypoints are those of `features_path` (hloc's convention, +0.5 px for COLMAP's); a view whose
+    keypoint count differs from the model's is left out.
+    """
+    views = sorted(rec.reg_image_ids())
+    row = {iid: k for k, iid in enumerate(views)}
+    point_ids = np.array(sorted(rec.point3D_ids()), dtype=np.int64)
+    if len(views) < 2 or len(point_ids) == 0:
+        return 0
+    obs_point, obs_view, obs_idx = [], [], []
+    for k, pid in enumerate(point_ids):
+        for element in rec.points3D[int(pid)].track.elements:
+            if element.image_id in row:
+                obs_point.append(k)
+                obs_view.append(row[element.image_id])
+                obs_idx.append(element.point2D_idx)
+    obs_point, obs_view, obs_idx = (np.asarray(a, dtype=np.int64) for a in (obs_point, obs_view, obs_idx))
+    xyz = np.array([rec.points3D[int(pid)].xyz for pid in point_ids], dtype=np.float64)
+    centers = np.array([rec.images[iid].projection_center() for iid in views], dtype=np.float64)
+    with FeatureCache(features_path, capacity=1) as cache:
+        first = cache.get(rec.images[views[0]].name)
+        if (len(obs_point) * first.descriptors.shape[1] > ext.max_values
+                or len(views) * len(point_ids) > ext.max_projections):
+            logger.info("track extension: %d views, %d points, %d observations: too large, skipped", len(views),
+                        len(point_ids), len(obs_point))
+            return 0
+        obs_desc = np.zeros((len(obs_point), first.descriptors.shape[1]), np.float32)
+        usable = np.zeros(len(views), bool)
+        for v, iid in enumerate(views):
+            feats = cache.get(rec.images[iid].name)
+            if len(feats.keypoints) != rec.images[iid].num_points2D():
+                continue
+            usable[v] = True
+            here = obs_view == v
+            obs_desc[here] = _unit(feats.descriptors[obs_idx[here]])
+        keep = usable[obs_view]  # observations whose descriptors are known
+        order = np.argsort(obs_point[keep], kind="stable")
+        o_point, o_view, o_desc = obs_point[keep][order], obs_view[keep][order], obs_desc[keep][order]
+        # per point, the slice [start, start + count) of its observations
+        count = np.bincount(o_point, minlength=len(point_ids))
+        start = np.concatenate([[0], np.cumsum(count)[:-1]])
+        o_dir = xyz[o_point] - centers[o_view]
+        o_dir /= np.linalg.norm(o_dir, axis=1, keepdims=True)
+        by_view = np.argsort(obs_view, kind="stable")
+        view_start = np.searchsorted(obs_view[by_view], np.arange(len(views) + 1))
+        cos_max = np.cos(np.radians(ext.max_view_angle_deg))
+        added = 0
+        for v, iid in enumerate(views):
+            if not usable[v]:
+                continue
+            candidate = count > 0  # points with known descriptors, not yet observed in this view
+            candidate[obs_point[by_view[view_start[v]:view_start[v + 1]]]] = False
+            added += _extend_view(rec, iid, cache.get(rec.images[iid].name), point_ids, xyz, centers[v], candidate,
+                                  o_dir, o_desc, start, count, cos_max, ext)
+    return added
+
+
+def _ranges(start: np.ndarray, count: np.ndarray) -> np.ndarray:
+    """Concatenation of arange(s, s + c) for each (s, c)."""
+    total = int(count.sum())
+    offsets = np.repeat(np.cumsum(count) - count, count)
+    return np.repeat(start, count) + np.arange(total) - offsets
+
+
+def _unit(desc: np.ndarray) -> np.ndarray:
+    d = np.asarray(desc, dtype=np.float32)
+    return d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
+
+
+def _extend_view(rec: pycolmap.Reconstruction, iid: int, feats, point_ids: np.ndarray, xyz: np.ndarray,
+                 center: np.ndarray, candidate: np.ndarray, o_dir: np.ndarray, o_desc: np.ndarray,
+                 start: np.ndarray, count: np.ndarray, cos_max: float, ext: TrackExtension) -> int:
+    """`extend_tracks` for one view: returns the observations added to it."""
+    image = rec.images[iid]
+    camera = rec.cameras[image.camera_id]
+    pose = image.cam_from_world()
+    idx = np.nonzero(candidate)[0]
+    in_cam = xyz[idx] @ pose.rotation.matrix().T + pose.translation
+    idx, in_cam = idx[in_cam[:, 2] > 1e-9], in_cam[in_cam[:, 2] > 1e-9]
+    if len(idx) == 0:
+        return 0
+    uv = np.asarray(camera.img_from_cam(in_cam), dtype=np.float64).reshape(-1, 2)
+    inside = np.isfinite(uv).all(1) & (uv[:, 0] >= 0) & (uv[:, 1] >= 0) & (uv[:, 0] < camera.width) \
+        & (uv[:, 1] < camera.height)
+    idx, uv = idx[inside], uv[inside]
+    if len(idx) == 0:
+        return 0
+    ray = xyz[idx] - center
+    ray /= np.linalg.norm(ray, axis=1, keepdims=True)
+    rep = np.repeat(np.arange(len(idx)), count[idx])  # candidate of each observation taken
+    obs = _ranges(start[idx], count[idx])
+    cos = np.full(len(idx), -1.0)
+    np.maximum.at(cos, rep, np.einsum("nd,nd->n", o_dir[obs], ray[rep]))
+    near = cos >= cos_max
+    taken = np.zeros(image.num_points2D(), bool)
+    taken[np.asarray(image.get_observation_point2D_idxs(), dtype=np.int64)] = True
+    free = np.nonzero(~taken)[0]
+    if len(free) == 0 or not near.any():
+        return 0
+    keypoints = np.asarray(feats.keypoints, dtype=np.float64)[free] + 0.5  # hloc -> COLMAP pixel convention
+    dist, nn = cKDTree(keypoints).query(uv[near], k=2, distance_upper_bound=ext.radius_px)
+    cand_rows = np.nonzero(near)[0]
+    desc = _unit(feats.descriptors)
+    best_d = np.full((len(cand_rows), 2), np.inf)
+    for c in range(2):
+        has = np.isfinite(dist[:, c])
+        rows = cand_rows[has]
+        if len(rows) == 0:
+            continue
+        kp = free[nn[has, c]]
+        sel = np.isin(rep, rows)  # observations of these candidates
+        lookup = np.full(len(idx), -1)
+        lookup[rows] = np.arange(len(rows))
+        sim = np.full(len(rows), -1.0)
+        np.maximum.at(sim, lookup[rep[sel]],
+                      np.einsum("nd,nd->n", o_desc[obs[sel]], desc[kp[lookup[rep[sel]]]]))
+        best_d[np.nonzero(has)[0], c] = np.sqrt(np.maximum(0.0, 2.0 - 2.0 * sim))
+    first = np.argmin(best_d, axis=1)
+    d1 = best_d[np.arange(len(cand_rows)), first]
+    d2 = best_d[np.arange(len(cand_rows)), 1 - first]
+    accept = (d1 <= ext.max_distance) & ((~np.isfinite(d2)) | (d1 < ext.max_ratio * d2))
+    if not accept.any():
+        return 0
+    keypoint = free[nn[np.arange(len(cand_rows)), first][accept]]
+    point = idx[cand_rows[accept]]
+    order = np.argsort(d1[accept], kind="stable")  # a keypoint claimed by several points: the closest wins
+    _, once = np.unique(keypoint[order], return_index=True)
+    for j in order[once]:
+        rec.add_observation(int(point_ids[point[j]]), pycolmap.TrackElement(iid, int(keypoint[j])))
+    return len(once)
+
+
 def triangulate_and_adjust(model_dir: Path, db_path: Path, image_dir: Path, out_dir: Path, *,
-                           num_threads: int = -1, seed: int = 0) -> dict[str, float]:
+                           num_threads: int = -1, seed: int = 0, features_path: Path | None = None,
+                           extension: TrackExtension | None = None) -> dict[str, float]:
     """Re-triangulate every match of the database with the model's poses fixed, then bundle-adjust all.
 
     COLMAP's point triangulator (`pycolmap.triangulate_points`: triangulation, track merging and
-    completion, re-triangulation, with the poses held constant) followed by one global bundle
-    adjustment of poses and points (focal length and radial distortion refined, principal point
-    fixed, as in COLMAP's mapper). Writes the result to `out_dir` (replaced); returns counts.
+    completion, re-triangulation, with the poses held constant), then a global bundle adjustment of
+    poses and points (focal length and radial distortion refined, principal point fixed, as in
+    COLMAP's mapper); with `extension`, the tracks are then extended (`extend_tracks`, keypoints
+    and descriptors of `features_path`) and adjusted once more. Writes the result to `out_dir` (replaced); returns counts.
     """
     out_dir = Path(out_dir)
     tmp = out_dir.with_name(out_dir.name + ".partial")
@@ -129,10 +298,17 @@ def triangulate_and_adjust(model_dir: Path, db_path: Path, image_dir: Path, out_
     tmp.mkdir(parents=True)
     rec = _triangulate(model_dir, db_path, image_dir, tmp, clear_points=True, num_threads=num_threads, seed=seed)
     pycolmap.bundle_adjustment(rec, pycolmap.BundleAdjustmentOptions())
+    added = 0
+    if extension is not None and features_path is not None:
+        # on the adjusted poses, whose projections are closer to the keypoints; then adjust again
+        added = extend_tracks(rec, features_path, extension)
+        if added:
+            pycolmap.bundle_adjustment(rec, pycolmap.BundleAdjustmentOptions())
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
     rec.write(str(tmp))
     if out_dir.exists():
         shutil.rmtree(out_dir)
     tmp.rename(out_dir)
-    return {"num_points3d": float(rec.num_points3D()), "num_registered": float(rec.num_reg_images())}
+    return {"num_points3d": float(rec.num_points3D()), "num_registered": float(rec.num_reg_images()),
+            "observations_added": float(added)}

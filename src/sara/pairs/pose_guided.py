@@ -97,8 +97,8 @@ def refine(ctx: PairContext, extra: list[Pair], db_path: Path, model_dir: Path,
            out_dir: Path) -> dict[str, Any] | None:
     """Refine the model after the pose-guided round instead of mapping again from scratch.
 
-    Re-triangulates every match of `db_path` with the poses of `model_dir` held fixed, then
-    bundle-adjusts poses and points together, into `out_dir`. Returns its counts and time, or None
+    Re-triangulates every match of `db_path` with the poses of `model_dir` held fixed, extends the
+    tracks (`graph.extend_tracks`), then bundle-adjusts poses and points together, into `out_dir`. Returns its counts and time, or None
     when the round's pairs `extra` are not the pose-guided round's (views left out of the model need the mapper
     to register them) or there is no model: then map again.
 
@@ -112,9 +112,14 @@ def refine(ctx: PairContext, extra: list[Pair], db_path: Path, model_dir: Path,
     if chosen != {tuple(sorted(p)) for p in extra}:
         return None
     tic = time.perf_counter()
+    graph = ctx.conf.graph
+    extension = colmap_refine.TrackExtension(radius_px=graph.extend_tracks_radius_px,
+                                             max_view_angle_deg=graph.pose_guided_max_view_angle_deg)
     counts = colmap_refine.triangulate_and_adjust(model_dir, db_path, ctx.images_root, out_dir,
-                                                  num_threads=ctx.conf.map.num_threads, seed=ctx.conf.seed)
+                                                  num_threads=ctx.conf.map.num_threads, seed=ctx.conf.seed,
+                                                  features_path=ctx.features_path,
+                                                  extension=extension if graph.extend_tracks else None)
     elapsed = time.perf_counter() - tic
-    logger.info("pose-guided round: re-triangulated and bundle-adjusted in %.1f s (%d points)", elapsed,
-                counts["num_points3d"])
+    logger.info("pose-guided round: re-triangulated, %d observations added to tracks, bundle-adjusted in %.1f s "
+                "(%d points)", counts["observations_added"], elapsed, counts["num_points3d"])
     return {"time_s": elapsed, **counts}
