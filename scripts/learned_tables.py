@@ -5,7 +5,11 @@ rows, the Markdown tables already in docs/BENCHMARKS.md (the SIFT run; nothing r
 prints one table per scene: features x method, with pairs, pairs per image, matching time and its
 per-pair cost, AUC@1/5/10 and the ratios against exhaustive with the same features.
 
-    python scripts/learned_tables.py /work/bench_learned/*/results.csv [--sift docs/BENCHMARKS.md]
+    python scripts/learned_tables.py /work/bench_learned/*/results.csv [--sift docs/BENCHMARKS.md] \
+        [--sift-bench BENCH]
+
+`--sift-bench` takes the SIFT rows from a SIFT `sara bench` folder instead (its results.csv and
+finished methods), for the scenes and methods it has; the rest still come from `--sift`.
 
 A bench folder instead of a results.csv also takes the methods it has finished so far.
 """
@@ -73,12 +77,14 @@ def finished_rows(bench_dir: Path) -> list[dict]:
     return rows
 
 
-def learned_rows(path: Path) -> list[dict]:
-    """Rows of a learned bench: its results.csv, or (a folder) results.csv plus finished methods."""
+def learned_rows(path: Path, features: str | None = None) -> list[dict]:
+    """Rows of a learned bench: its results.csv, or (a folder) results.csv plus finished methods;
+    the features are named by the folder (learned_bench.sh's names) unless given."""
     bench_dir = path if path.is_dir() else path.parent
-    features = next((k for k in FEATURES if bench_dir.name.startswith(k)), bench_dir.name)
-    if features in FEATURES and "1024" in bench_dir.name:  # -s extract.max_num_features=1024 (learned_bench.sh)
-        features += "1024"
+    if features is None:
+        features = next((k for k in FEATURES if bench_dir.name.startswith(k)), bench_dir.name)
+        if features in FEATURES and "1024" in bench_dir.name:  # -s extract.max_num_features=1024 (learned_bench.sh)
+            features += "1024"
     found = []
     if (bench_dir / "results.csv").exists():
         with (bench_dir / "results.csv").open() as f:
@@ -112,8 +118,13 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("results", nargs="+", type=Path)
     parser.add_argument("--sift", type=Path, default=Path(__file__).resolve().parents[1] / "docs" / "BENCHMARKS.md")
+    parser.add_argument("--sift-bench", type=Path, help="a SIFT sara bench folder: its rows replace --sift's")
     args = parser.parse_args()
     rows = sift_rows(args.sift) if args.sift and args.sift.exists() else []
+    if args.sift_bench:
+        fresh = learned_rows(args.sift_bench, features="sift")
+        have = {(r["scene"], r["method"]) for r in fresh}
+        rows = [r for r in rows if (r["scene"], r["method"]) not in have] + fresh
     for path in args.results:
         rows += learned_rows(path)
     for scene in SCENES:
