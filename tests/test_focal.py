@@ -99,5 +99,5 @@ def test_the_new_setting_keeps_earlier_extractions_valid(tmp_path: Path):
     before = {k: v for k, v in ExtractConfig().__dict__.items() if k != "estimate_focal"}
     old_key = fingerprint({"images": images.fingerprint_data(), "conf": before})  # as sara keyed it then
     records.mark_done(out, extract.STAGE, old_key)
-    assert _key(images, ExtractConfig(), out, progress=False) == old_key
-    assert _key(images, ExtractConfig(estimate_focal=False), out, progress=False) != old_key
+    assert _key(images, ExtractConfig(), out, progress=False)[0] == old_key
+    assert _key(images, ExtractConfig(estimate_focal=False), out, progress=False)[0] != old_key

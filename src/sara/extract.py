@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -19,7 +20,7 @@ from .execute import Executor, SerialExecutor, single_threaded_torch_in_worker
 from .features import Keypoints, LocalFeatures, features_file_name, make_backend
 from .io import DamagedOutputError, OutputStateError, atomic_path, ensure_free_space, fingerprint, records
 from .io.h5 import H5_ERRORS, Features, features_digest, has_features, write_features
-from .io.images import ImageSet, content_digests, set_aside
+from .io.images import ImageSet, content_digests, save_digests, set_aside
 from .scoring import focal
 
 logger = logging.getLogger(__name__)
@@ -80,8 +81,10 @@ _LATER_SETTINGS = {"estimate_focal": True}
 DIGESTS_NAME = "image-digests.json"
 
 
-def _key(images: ImageSet, conf: ExtractConfig, out_dir: Path, *, progress: bool = True) -> str:
-    """The stage key: the images' names and contents and the settings.
+def _key(images: ImageSet, conf: ExtractConfig, out_dir: Path, *,
+         progress: bool = True) -> tuple[str, Callable[[], None]]:
+    """(the stage key: the images' names and contents and the settings, a function that saves the
+    images' digests for the next run: to call once the key is accepted).
 
     Features made by an earlier sara, keyed by the images' sizes and modification times, keep
     that key while those are unchanged.
@@ -89,9 +92,11 @@ def _key(images: ImageSet, conf: ExtractConfig, out_dir: Path, *, progress: bool
     settings = {k: v for k, v in conf.__dict__.items() if not (k in _LATER_SETTINGS and v == _LATER_SETTINGS[k])}
     record = records.read_record(out_dir, STAGE)
     if record is not None and record.get("key") == fingerprint({"images": images.fingerprint_data(), "conf": settings}):
-        return record["key"]
-    digests = content_digests(images, out_dir / ".sara" / DIGESTS_NAME, progress=progress)
-    return fingerprint({"images": [[name, digests[name]] for name in images.names], "conf": settings})
+        return record["key"], lambda: None
+    cache = out_dir / ".sara" / DIGESTS_NAME
+    digests, entries = content_digests(images, cache, progress=progress)
+    key = fingerprint({"images": [[name, digests[name]] for name in images.names], "conf": settings})
+    return key, lambda: save_digests(cache, entries)
 
 
 def _check_existing_database(db_path: Path, images: ImageSet) -> bool:
@@ -119,10 +124,11 @@ def run(conf: ExtractConfig, images: ImageSet, out_dir: Path, *, executor: Execu
     """
     out_dir = Path(out_dir)
     db_path, h5_path = out_dir / DB_NAME, out_dir / features_file_name(conf)
-    key = _key(images, conf, out_dir, progress=progress)
+    key, save_digests_ = _key(images, conf, out_dir, progress=progress)
     tic = time.perf_counter()
     if not overwrite and records.is_done(out_dir, STAGE, key) and _outputs_intact(out_dir, db_path, h5_path):
         logger.info("extract: features up to date, skipping")
+        save_digests_()
         usable(images, out_dir, warn=True)  # the images it set aside, one warning each as when it ran
         return h5_path
     backend = make_backend(conf)  # loads weights: a missing file fails here, before any work
@@ -136,6 +142,7 @@ def run(conf: ExtractConfig, images: ImageSet, out_dir: Path, *, executor: Execu
         colmap.remove_database(db_path)
         h5_path.unlink(missing_ok=True)
         _partial(h5_path).unlink(missing_ok=True)
+    save_digests_()
     uses_colmap_reader = hasattr(backend, "extract_to_database")
     unreadable = _unreadable(images, progress) if uses_colmap_reader else {}
     readable = set_aside(images, unreadable)

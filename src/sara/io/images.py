@@ -53,13 +53,16 @@ def _sha256(path: Path) -> str:
     return h.hexdigest()[:24]
 
 
-def content_digests(images: ImageSet, cache_path: Path, *, progress: bool = True) -> dict[str, str]:
-    """name -> a digest of the image file's bytes, for every image of the set.
+def content_digests(images: ImageSet, cache_path: Path, *,
+                    progress: bool = True) -> tuple[dict[str, str], dict[str, list] | None]:
+    """(name -> a digest of the image file's bytes for every image of the set, the cache entries
+    to save with `save_digests`, or None when the cache is up to date).
 
     What identifies an image for the caches is its content, not its modification time: a folder
     copied or restored elsewhere (new times, same bytes) keeps its features. Hashing reads every
     file once; `cache_path` (JSON, name -> [size, mtime_ns, digest]) remembers the digests, and a
-    file whose size and modification time are those of its entry is not read again.
+    file whose size and modification time are those of its entry is not read again. Nothing is
+    written here, so that a run refused for its inputs leaves the output folder as it was.
     """
     cache_path = Path(cache_path)
     try:
@@ -89,10 +92,14 @@ def content_digests(images: ImageSet, cache_path: Path, *, progress: bool = True
             digests[name] = f"unreadable: {exc.strerror}"
             continue
         entries[name] = [size, mtime_ns, digests[name]]
-    if todo or len(entries) != len(cached):
-        cache_path.parent.mkdir(parents=True, exist_ok=True)
-        write_json_atomic(cache_path, entries)
-    return digests
+    return digests, (entries if todo or len(entries) != len(cached) else None)
+
+
+def save_digests(cache_path: Path, entries: dict[str, list] | None) -> None:
+    """Write the cache entries `content_digests` returned (nothing when it returned None)."""
+    if entries is not None:
+        Path(cache_path).parent.mkdir(parents=True, exist_ok=True)
+        write_json_atomic(Path(cache_path), entries)
 
 
 def list_image_files(root: Path, *, recursive: bool = False) -> list[str]:
