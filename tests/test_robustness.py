@@ -142,6 +142,9 @@ def test_features_follow_the_images_content_not_their_times(tmp_path: Path, synt
     hashed.clear()
     run(conf, moved, out, progress=False, stop_after="extract")
     assert hashed == []  # sizes and times unchanged since: the digests are remembered
+    (out / ".sara" / "image-digests.json").write_text('{"cut short')
+    run(conf, moved, out, progress=False, stop_after="extract")
+    assert records.read_record(out, "extract") == record and len(hashed) == len(src)  # a damaged cache: hash again
     changed = moved / src[0].name
     pixels = np.array(Image.open(changed).convert("RGB"))
     pixels[:8, :8] = 255 - pixels[:8, :8]
