@@ -11,7 +11,12 @@ import numpy as np
 import pycolmap
 import pytest
 
-from sara.colmap.refine import TrackExtension, extend_tracks, read_geometry, triangulate_and_adjust
+from sara.colmap.refine import (
+    TrackExtension,
+    extend_tracks,
+    read_geometry,
+    triangulate_and_adjust,
+)
 from sara.config import make_config
 from sara.pairs import PairContext
 from sara.pairs import pose_guided as round_
