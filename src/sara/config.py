@@ -213,8 +213,8 @@ class GraphConfig:
     """A point counts as covisible only if the two views see it from directions at most this far
     apart (degrees): SIFT seldom matches across wider angles."""
     extend_tracks: bool = True
-    """When the pose-guided round refines the model, first add to its tracks the keypoints that
-    observe its 3D points without a match saying so: each view against the points it should see,
+    """When the pose-guided round refines the model, add to its tracks the keypoints that
+    observe its 3D points without a match saying so (then bundle-adjust once more): each view against the points it should see,
     a keypoint within `extend_tracks_radius_px` of the projection whose descriptor passes COLMAP's
     SIFT matching tests against the track's (`sara.colmap.refine.extend_tracks`). Longer tracks
     for the final bundle adjustment without matching more pairs (docs/ACCURACY.md, section 12)."""

@@ -7,8 +7,8 @@ The pycolmap calls of SARA's pose-guided round (`sara.pairs.pose_guided`) live h
 - `triangulate_new_matches`: the same triangulator keeping the model's points, so that a mapper
   continuing from the model finds 3D points on the features that newly matched views share with it;
 - `triangulate_and_adjust`: COLMAP's point triangulator with the poses of a model held fixed
-  (`pycolmap.triangulate_points`), optionally `extend_tracks`, then a global bundle adjustment that
-  frees the poses again;
+  (`pycolmap.triangulate_points`), then a global bundle adjustment that frees the poses again
+  (optionally followed by `extend_tracks` and one more adjustment);
 - `extend_tracks`: longer tracks without matching more pairs: each view's keypoints matched against
   the 3D points the model says it sees (projection, then descriptors).
 
@@ -175,6 +175,9 @@ def extend_tracks(rec: pycolmap.Reconstruction, features_path: Path,
             logger.info("track extension: %d views, %d points, %d observations: too large, skipped", len(views),
                         len(point_ids), len(obs_point))
             return 0
+        # observations grouped by view: those of view v are by_view[view_start[v]:view_start[v + 1]]
+        by_view = np.argsort(obs_view, kind="stable")
+        view_start = np.searchsorted(obs_view[by_view], np.arange(len(views) + 1))
         obs_desc = np.zeros((len(obs_point), first.descriptors.shape[1]), np.float32)
         usable = np.zeros(len(views), bool)
         for v, iid in enumerate(views):
@@ -182,7 +185,7 @@ def extend_tracks(rec: pycolmap.Reconstruction, features_path: Path,
             if len(feats.keypoints) != rec.images[iid].num_points2D():
                 continue
             usable[v] = True
-            here = obs_view == v
+            here = by_view[view_start[v]:view_start[v + 1]]
             obs_desc[here] = _unit(feats.descriptors[obs_idx[here]])
         keep = usable[obs_view]  # observations whose descriptors are known
         order = np.argsort(obs_point[keep], kind="stable")
@@ -192,8 +195,6 @@ def extend_tracks(rec: pycolmap.Reconstruction, features_path: Path,
         start = np.concatenate([[0], np.cumsum(count)[:-1]])
         o_dir = xyz[o_point] - centers[o_view]
         o_dir /= np.linalg.norm(o_dir, axis=1, keepdims=True)
-        by_view = np.argsort(obs_view, kind="stable")
-        view_start = np.searchsorted(obs_view[by_view], np.arange(len(views) + 1))
         cos_max = np.cos(np.radians(ext.max_view_angle_deg))
         added = 0
         for v, iid in enumerate(views):
@@ -290,7 +291,8 @@ def triangulate_and_adjust(model_dir: Path, db_path: Path, image_dir: Path, out_
     completion, re-triangulation, with the poses held constant), then a global bundle adjustment of
     poses and points (focal length and radial distortion refined, principal point fixed, as in
     COLMAP's mapper); with `extension`, the tracks are then extended (`extend_tracks`, keypoints
-    and descriptors of `features_path`) and adjusted once more. Writes the result to `out_dir` (replaced); returns counts.
+    and descriptors of `features_path`) and adjusted once more. Writes the result to `out_dir`
+    (replaced); returns counts.
     """
     out_dir = Path(out_dir)
     tmp = out_dir.with_name(out_dir.name + ".partial")

@@ -97,10 +97,11 @@ def refine(ctx: PairContext, extra: list[Pair], db_path: Path, model_dir: Path,
            out_dir: Path) -> dict[str, Any] | None:
     """Refine the model after the pose-guided round instead of mapping again from scratch.
 
-    Re-triangulates every match of `db_path` with the poses of `model_dir` held fixed, extends the
-    tracks (`graph.extend_tracks`), then bundle-adjusts poses and points together, into `out_dir`. Returns its counts and time, or None
-    when the round's pairs `extra` are not the pose-guided round's (views left out of the model need the mapper
-    to register them) or there is no model: then map again.
+    Re-triangulates every match of `db_path` with the poses of `model_dir` held fixed and
+    bundle-adjusts poses and points together, then extends the tracks (`graph.extend_tracks`) and
+    adjusts again, into `out_dir`. Returns its counts and time, or None when the round's pairs
+    `extra` are not the pose-guided round's (views left out of the model need the mapper to
+    register them) or there is no model: then map again.
 
     The pipeline calls this through `after_mapping.refine` where it supports it (docs/ACCURACY.md,
     "Pipeline change"); otherwise the round's pairs are mapped again from scratch.
