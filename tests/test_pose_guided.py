@@ -96,6 +96,17 @@ def test_choose_pairs_ranks_by_predicted_weight_within_budget_and_threshold():
         pair_scores(cov, pairs, "nope")
 
 
+def test_choose_pairs_limits_the_pairs_of_each_view():
+    pairs = np.array([[0, 1], [0, 2], [0, 3], [1, 2], [2, 3]])
+    # weights (one view set, no parallax cap): 0.9, 0.8, 0.7, 0.6, 0.5
+    cov = _cov(covisible=[90, 80, 70, 60, 50], tri_angle_deg=[10] * 5, observed=[100] * 4)
+    assert choose_pairs(pairs, cov, 5).tolist() == [0, 1, 2, 3, 4]
+    # view 0 is full after two pairs: (0, 3) is skipped, then view 2 is full after (1, 2)
+    assert choose_pairs(pairs, cov, 5, max_per_view=2).tolist() == [0, 1, 3]
+    assert choose_pairs(pairs, cov, 2, max_per_view=2).tolist() == [0, 1]
+    assert choose_pairs(pairs, cov, 5, max_per_view=1).tolist() == [0, 4]
+
+
 def test_choose_pairs_skips_pairs_with_nothing_covisible():
     pairs = np.array([[0, 1], [0, 2], [1, 2]])
     cov = _cov(covisible=[50, 0, 50], tri_angle_deg=[5, 0, 0], observed=[100, 100, 100])

@@ -67,6 +67,7 @@ def select_extra(ctx: PairContext, pairs: list[Pair], model_dir: Path) -> tuple[
     rule = "covisible" if graph.densify else "weight"
     score = ctx.conf.score
     chosen = pose_guided.choose_pairs(candidates, cov, limit, rule=rule, min_covisible=graph.pose_guided_min_points,
+                                      max_per_view=0 if graph.densify else graph.pose_guided_max_per_view,
                                       alpha=score.alpha, beta=score.beta,
                                       parallax_saturation_deg=score.parallax_saturation_deg)
     extra = sorted(tuple(sorted((geom.names[a], geom.names[b]))) for a, b in candidates[chosen])

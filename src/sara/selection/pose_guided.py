@@ -101,11 +101,12 @@ def pair_scores(cov: Covisibility, pairs: np.ndarray, rule: str, *, alpha: float
 
 
 def choose_pairs(pairs: np.ndarray, cov: Covisibility, budget: int, *, rule: str = "weight",
-                 min_covisible: float = 0.0, **weight_params: float) -> np.ndarray:
+                 min_covisible: float = 0.0, max_per_view: int = 0, **weight_params: float) -> np.ndarray:
     """Indices into `pairs` of at most `budget` pairs, best first (ties: by pair index).
 
     Pairs with fewer than `min_covisible` predicted covisible points (or none) are never chosen:
-    matching them would not pass geometric verification. `weight_params`: alpha, beta,
+    matching them would not pass geometric verification. With `max_per_view` > 0, a pair is skipped
+    once one of its views is in that many chosen pairs. `weight_params`: alpha, beta,
     parallax_saturation_deg of `pair_scores`.
     """
     if budget <= 0 or len(pairs) == 0:
@@ -113,4 +114,17 @@ def choose_pairs(pairs: np.ndarray, cov: Covisibility, budget: int, *, rule: str
     score = pair_scores(cov, pairs, rule, **weight_params)
     usable = np.flatnonzero((cov.covisible >= max(min_covisible, 1e-9)) & (score > 0))
     order = usable[np.argsort(-score[usable], kind="stable")]
-    return order[:budget].astype(np.int64)
+    if max_per_view <= 0:
+        return order[:budget].astype(np.int64)
+    used: dict[int, int] = {}
+    chosen = []
+    for k in order:
+        a, b = int(pairs[k, 0]), int(pairs[k, 1])
+        if used.get(a, 0) >= max_per_view or used.get(b, 0) >= max_per_view:
+            continue
+        used[a] = used.get(a, 0) + 1
+        used[b] = used.get(b, 0) + 1
+        chosen.append(k)
+        if len(chosen) == budget:
+            break
+    return np.asarray(chosen, dtype=np.int64)
