@@ -56,3 +56,42 @@ def test_real_scene_temple_sparse_ring_repair_round_continues_the_model(tmp_path
     assert "views were left out of the main model" in caplog.text  # the repair round ran
     assert "mapping from scratch too" not in caplog.text
     assert report.metrics["num_registered"] == 16 and report.metrics["num_components"] == 1
+
+
+def test_sara_extends_the_tracks_of_the_final_model_once(tmp_path: Path, synthetic_scene, caplog, monkeypatch):
+    """Without a pose-guided refinement (the round switched off), the final model's tracks are still
+    extended, once: a second run leaves the model as it is and does not see it as damaged."""
+    from sara.mapping import model_digest
+    from sara.pairs import sara_source
+
+    images, gt = synthetic_scene
+    caplog.set_level("INFO", logger="sara")
+    out = tmp_path / "out"
+    conf = make_config("sift-offline", {"graph.pose_guided_pairs_per_image": 0})
+    report = run(conf, images, out, gt_dir=gt, progress=False)
+    assert report.metrics["num_registered"] == 10
+    extension = read_json(out / "run.json")["stages"]["repair"]["extension"]
+    assert extension["observations_added"] > 0
+    assert "final model:" in caplog.text
+    digest = model_digest(out / "sparse")
+    caplog.clear()
+    again = run(conf, images, out, gt_dir=gt, progress=False)
+    assert model_digest(out / "sparse") == digest and "final model:" not in caplog.text
+    assert again.metrics["auc"] == report.metrics["auc"]
+    assert again.stages["repair"]["extension"]["observations_added"] == extension["observations_added"]
+
+    # a last step that fails leaves the model as the mapper made it, and says so
+    def broken(*args, **kwargs):
+        raise OSError("features file unreadable")
+
+    monkeypatch.setattr(sara_source.after_mapping, "finish", broken)
+    failed = tmp_path / "failed"
+    report = run(conf, images, failed, progress=False)
+    assert "keeping the model as it is" in caplog.text and "extension" not in report.stages.get("repair", {})
+    assert report.stages["map"]["num_registered"] == 10
+
+    # switched off: the model is the mapper's
+    off = tmp_path / "off"
+    run(make_config("sift-offline", {"graph.pose_guided_pairs_per_image": 0, "graph.extend_tracks": False}),
+        images, off, progress=False)
+    assert "extension" not in read_json(off / "run.json")["stages"].get("repair", {})

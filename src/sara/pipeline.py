@@ -364,7 +364,50 @@ def after_mapping_rounds(conf: PipelineConfig, images: ImageSet, features_path: 
                                else records.done_info(out_dir, mapping.STAGE).get("time_s", 0.0))
         info["refined_rounds"] = info.get("refined_rounds", 0) + (refined is not None)
         records.mark_done(out_dir, AFTER_MAPPING_STAGE, "", info)
-    return info if info["rounds"] else None
+    finish = getattr(step, "finish", None)
+    if finish is not None:
+        finished = _finish_round(conf, ctx, finish, out_dir, refined=info.get("refined_rounds", 0) > 0)
+        if finished is not None:
+            info["extension"] = finished
+            info["time_s"] += finished["time_s"]
+            info["map_time_s"] += finished["time_s"]
+            records.mark_done(out_dir, AFTER_MAPPING_STAGE, "", info)
+    return info if info["rounds"] or info.get("extension") else None
+
+
+#: the last step after mapping (`_finish_round`)
+FINISH_STAGE = "finish"
+
+
+def _finish_round(conf: PipelineConfig, ctx: PairContext, finish: Any, out_dir: Path, *,
+                  refined: bool) -> dict[str, Any] | None:
+    """The pair source's last word on the final model (SARA: extend its tracks when no pose-guided
+    refinement did); once per model: a model it already finished is left as it is."""
+    sparse = out_dir / "sparse"
+    done = records.done_info(out_dir, FINISH_STAGE)
+    if done and done.get("model") == mapping.model_digest(sparse):
+        return None
+    tmp = out_dir / ".sara" / "sparse.finished"
+    shutil.rmtree(tmp, ignore_errors=True)
+    try:
+        result = finish(ctx, sparse / "0", tmp / "0", refined=refined)
+    except (OSError, ValueError, KeyError, RuntimeError) as exc:  # an improvement only: the model stays
+        logger.warning("the last step on the final model failed (%s): keeping the model as it is", exc)
+        result = None
+    if result is None:
+        shutil.rmtree(tmp, ignore_errors=True)
+        return None
+    for other in sorted(sparse.iterdir()):  # the other components stay as they are
+        if other.is_dir() and other.name != "0":
+            shutil.copytree(other, tmp / other.name)
+    mapping.swap_in(tmp, sparse)
+    digest = mapping.model_digest(sparse)
+    # the map stage now describes the finished model: a re-run keeps it
+    mapped = records.read_record(out_dir, mapping.STAGE) or {}
+    records.mark_done(out_dir, mapping.STAGE, mapped.get("key", ""), records.done_info(out_dir, mapping.STAGE),
+                      outputs={"sparse": digest})
+    records.mark_done(out_dir, FINISH_STAGE, "", {**result, "model": digest})
+    return result
 
 
 def _refine_round(conf: PipelineConfig, ctx: PairContext, refine: Any, extra: list, out_dir: Path, work: Path,
@@ -539,7 +582,7 @@ def _collect_after_mapping(report: RunReport, info: dict[str, Any] | None) -> No
     report.stages["pairs"] = records.done_info(out_dir, PAIRS_STAGE)
     report.stages["match"] = records.done_info(out_dir, match.STAGE)
     report.stages["map"] = records.done_info(out_dir, mapping.STAGE)
-    if info and info.get("rounds"):
+    if info and (info.get("rounds") or info.get("extension")):
         report.stages["repair"] = info
         report.stages["match"]["time_s"] = info["match_time_s"]
         report.stages["map"]["time_s"] = info["map_time_s"]

@@ -314,3 +314,23 @@ def triangulate_and_adjust(model_dir: Path, db_path: Path, image_dir: Path, out_
     tmp.rename(out_dir)
     return {"num_points3d": float(rec.num_points3D()), "num_registered": float(rec.num_reg_images()),
             "observations_added": float(added)}
+
+
+def extend_and_adjust(model_dir: Path, out_dir: Path, features_path: Path,
+                      extension: TrackExtension = TrackExtension()) -> dict[str, float]:
+    """`extend_tracks` on the model of `model_dir`, then a global bundle adjustment when anything
+    was added; writes the result to `out_dir` (replaced) and returns counts."""
+    out_dir = Path(out_dir)
+    rec = pycolmap.Reconstruction(str(model_dir))
+    added = extend_tracks(rec, Path(features_path), extension)
+    if added:
+        pycolmap.bundle_adjustment(rec, pycolmap.BundleAdjustmentOptions())
+    tmp = out_dir.with_name(out_dir.name + ".partial")
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    rec.write(str(tmp))
+    if out_dir.exists():
+        shutil.rmtree(out_dir)
+    tmp.rename(out_dir)
+    return {"num_points3d": float(rec.num_points3D()), "num_registered": float(rec.num_reg_images()),
+            "observations_added": float(added)}

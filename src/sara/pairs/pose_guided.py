@@ -115,8 +115,7 @@ def refine(ctx: PairContext, extra: list[Pair], db_path: Path, model_dir: Path,
         return None
     tic = time.perf_counter()
     graph = ctx.conf.graph
-    extension = colmap_refine.TrackExtension(radius_px=graph.extend_tracks_radius_px,
-                                             max_view_angle_deg=graph.pose_guided_max_view_angle_deg)
+    extension = _extension(graph)
     counts = colmap_refine.triangulate_and_adjust(model_dir, db_path, ctx.images_root, out_dir,
                                                   num_threads=ctx.conf.map.num_threads, seed=ctx.conf.seed,
                                                   features_path=ctx.features_path,
@@ -124,4 +123,24 @@ def refine(ctx: PairContext, extra: list[Pair], db_path: Path, model_dir: Path,
     elapsed = time.perf_counter() - tic
     logger.info("pose-guided round: re-triangulated, %d observations added to tracks, bundle-adjusted in %.1f s "
                 "(%d points)", counts["observations_added"], elapsed, counts["num_points3d"])
+    return {"time_s": elapsed, **counts}
+
+
+def _extension(graph: Any) -> colmap_refine.TrackExtension:
+    return colmap_refine.TrackExtension(radius_px=graph.extend_tracks_radius_px,
+                                        max_view_angle_deg=graph.pose_guided_max_view_angle_deg)
+
+
+def finish(ctx: PairContext, model_dir: Path, out_dir: Path, *, refined: bool) -> dict[str, Any] | None:
+    """Extend the tracks of the final model (`graph.extend_tracks`) when no pose-guided refinement
+    did (`refined` False: the round was skipped, the pair cap being spent, or every round mapped
+    again), then bundle-adjust, into `out_dir`. None when there is nothing to do."""
+    graph = ctx.conf.graph
+    if refined or not graph.extend_tracks or not colmap.has_model(model_dir):
+        return None
+    tic = time.perf_counter()
+    counts = colmap_refine.extend_and_adjust(model_dir, out_dir, ctx.features_path, _extension(graph))
+    elapsed = time.perf_counter() - tic
+    logger.info("final model: %d observations added to tracks, bundle-adjusted in %.1f s",
+                counts["observations_added"], elapsed)
     return {"time_s": elapsed, **counts}

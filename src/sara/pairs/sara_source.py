@@ -207,6 +207,8 @@ def _first_round(scores_csv: Path) -> list[Pair]:
 
 #: the pipeline may refine the model after the pose-guided round instead of mapping again
 after_mapping.refine = pose_guided.refine  # type: ignore[attr-defined]
+#: and extend the final model's tracks when no refinement did
+after_mapping.finish = pose_guided.finish  # type: ignore[attr-defined]
 
 
 def rescue_low_parallax(num_images: int, edges: np.ndarray, roles: list[str], scores: scoring.PairScores) -> int:
