@@ -25,6 +25,7 @@ import logging
 import math
 import tempfile
 import time
+from collections import OrderedDict
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -36,7 +37,7 @@ from tqdm import tqdm
 
 from .. import colmap
 from ..config import ScoreConfig
-from ..descriptors import mutual_nearest_neighbours
+from ..descriptors import l2_normalize, mutual_matches_from_similarity, mutual_nearest_neighbours
 from ..execute import Executor, SerialExecutor
 from ..io.h5 import FeatureCache, Features
 from ..io.scores import PairScores
@@ -61,11 +62,13 @@ class ViewFeatures:
         descriptors: (M, D) uint8 or float, as stored; normalised when matched.
         points_norm: (M, 2) float64 normalised, undistorted camera coordinates.
         focal_px: mean focal length in pixels (converts the pixel threshold).
+        unit: the descriptors are already `l2_normalize`d (float32), as a `ViewStore` gives them.
     """
 
     descriptors: np.ndarray
     points_norm: np.ndarray
     focal_px: float
+    unit: bool = False
 
     def __post_init__(self) -> None:
         if len(self.descriptors) != len(self.points_norm):
@@ -129,7 +132,10 @@ def score_pair(view0: ViewFeatures, view1: ViewFeatures, conf: ScoreConfig, *, s
     ``overlap`` is ``num_inliers / sqrt(N0 * N1)`` with N the keypoints used (at most M per image).
     The same views, settings and seed always give the same score.
     """
-    matches, _ = mutual_nearest_neighbours(view0.descriptors, view1.descriptors, conf.num_matches)
+    if view0.unit and view1.unit:  # normalised once per view, not once per pair
+        matches, _ = mutual_matches_from_similarity(view0.descriptors @ view1.descriptors.T, conf.num_matches)
+    else:
+        matches, _ = mutual_nearest_neighbours(view0.descriptors, view1.descriptors, conf.num_matches)
     x0, x1 = view0.points_norm[matches[:, 0]], view1.points_norm[matches[:, 1]]
     max_error = conf.ransac_max_error_px * 2.0 / (view0.focal_px + view1.focal_px)
     pose = estimate_relative_pose(x0, x1, max_error=max_error, iterations=conf.ransac_iterations, seed=seed)
@@ -168,7 +174,11 @@ class ViewStore:
     memory grows with the images scored, never with the pairs.
 
     Files in `folder`: descriptors (N, M, D), points (N, M, 2) float64, counts (N,), focal (N,).
+    The unit descriptors of the last `UNIT_CACHE_VIEWS` views asked for are kept in memory: a view
+    is in many pairs, and normalising its descriptors for each took a seventh of the scoring time.
     """
+
+    UNIT_CACHE_VIEWS = 64
 
     def __init__(self, folder: Path) -> None:
         self.folder = Path(folder)
@@ -176,11 +186,19 @@ class ViewStore:
         self.points = np.load(self.folder / "points.npy", mmap_mode="r")
         self.counts = np.load(self.folder / "counts.npy")
         self.focal = np.load(self.folder / "focal.npy")
+        self._unit: OrderedDict[int, np.ndarray] = OrderedDict()
 
     def view(self, index: int) -> ViewFeatures:
         n = int(self.counts[index])
-        return ViewFeatures(descriptors=np.asarray(self.descriptors[index, :n]),
-                            points_norm=np.asarray(self.points[index, :n]), focal_px=float(self.focal[index]))
+        unit = self._unit.get(index)
+        if unit is None:
+            unit = self._unit[index] = l2_normalize(np.asarray(self.descriptors[index, :n]), axis=1)
+            if len(self._unit) > self.UNIT_CACHE_VIEWS:
+                self._unit.popitem(last=False)
+        else:
+            self._unit.move_to_end(index)
+        return ViewFeatures(descriptors=unit, points_norm=np.asarray(self.points[index, :n]),
+                            focal_px=float(self.focal[index]), unit=True)
 
     @classmethod
     def write(cls, folder: Path, names: Sequence[str], features_path: Path, db_path: Path, num_keypoints: int, *,
