@@ -346,6 +346,23 @@ def test_score_pairs_on_files_and_round_trip_through_csv(tmp_path):
     assert not list(tmp_path.glob(".scores.csv.*"))  # no temporary file left behind
 
 
+def test_a_view_store_scores_as_the_features_do(tmp_path, monkeypatch):
+    """The store's cached unit descriptors give the scores of the features as read, bit for bit,
+    also when views leave the cache and come back."""
+    from sara.scoring.scorer import ViewStore, load_views, score_pair
+
+    features_path, db_path = write_synthetic_inputs(tmp_path)
+    names = ["a.png", "b.png", "c.png", "d.png"]
+    views = load_views(names, features_path, db_path, 1024, progress=False)
+    monkeypatch.setattr(ViewStore, "UNIT_CACHE_VIEWS", 2)
+    store = ViewStore.write(tmp_path / "store", names, features_path, db_path, 1024, progress=False)
+    order = [(0, 1), (0, 2), (1, 3), (2, 3), (0, 3), (0, 1)]
+    for a, b in order:
+        cached = score_pair(store.view(a), store.view(b), ScoreConfig())
+        assert cached == score_pair(views[names[a]], views[names[b]], ScoreConfig())
+    assert len(store._unit) == 2 and not views["a.png"].unit and store.view(0).unit
+
+
 def test_scores_csv_without_roles_and_with_odd_names(tmp_path):
     scores = PairScores(
         name0=["dir/a, b.jpg"], name1=['say "c".jpg'], num_matches=np.array([50]),
