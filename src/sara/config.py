@@ -218,11 +218,12 @@ class GraphConfig:
     (bm-moldGoldCape AUC@1 0.943 against 0.933, above exhaustive's 0.941) but costs templeRing 0.010
     and castle 0.006 at AUC@1, so the default is no limit (docs/ACCURACY.md 12.6)."""
     extend_tracks: bool = True
-    """When the pose-guided round refines the model, add to its tracks the keypoints that
-    observe its 3D points without a match saying so (then bundle-adjust once more): each view against the points it should see,
-    a keypoint within `extend_tracks_radius_px` of the projection whose descriptor passes COLMAP's
-    SIFT matching tests against the track's (`sara.colmap.refine.extend_tracks`). Longer tracks
-    for the final bundle adjustment without matching more pairs (docs/ACCURACY.md, section 12)."""
+    """When the pose-guided round refines the model (or else, on the final model), add to its
+    tracks the keypoints that observe its 3D points without a match saying so, then bundle-adjust
+    once more: each view against the points it should see, a keypoint within
+    `extend_tracks_radius_px` of the projection whose descriptor passes COLMAP's SIFT matching
+    tests against the track's (`sara.colmap.refine.extend_tracks`). Longer tracks for the final
+    bundle adjustment without matching more pairs (docs/ACCURACY.md, sections 12 and 12.8)."""
     extend_tracks_radius_px: float = 1.5
     """How far from a point's projection a keypoint may be to join its track (pixels): 1.0 and 2.0
     measured worse on some of the six shared scenes (docs/ACCURACY.md, section 12)."""
