@@ -366,7 +366,7 @@ def after_mapping_rounds(conf: PipelineConfig, images: ImageSet, features_path: 
         records.mark_done(out_dir, AFTER_MAPPING_STAGE, "", info)
     finish = getattr(step, "finish", None)
     if finish is not None:
-        finished = _finish_round(conf, ctx, finish, out_dir, refined=info.get("refined_rounds", 0) > 0)
+        finished = _finish_round(ctx, finish, out_dir, refined=info.get("refined_rounds", 0) > 0)
         if finished is not None:
             info["extension"] = finished
             info["time_s"] += finished["time_s"]
@@ -375,12 +375,18 @@ def after_mapping_rounds(conf: PipelineConfig, images: ImageSet, features_path: 
     return info if info["rounds"] or info.get("extension") else None
 
 
+def _copy_other_models(sparse: Path, new: Path) -> None:
+    """Into `new`, whose main model (0) replaces `sparse/0`: the other components as they are."""
+    for other in sorted(sparse.iterdir()):
+        if other.is_dir() and other.name != "0":
+            shutil.copytree(other, new / other.name)
+
+
 #: the last step after mapping (`_finish_round`)
 FINISH_STAGE = "finish"
 
 
-def _finish_round(conf: PipelineConfig, ctx: PairContext, finish: Any, out_dir: Path, *,
-                  refined: bool) -> dict[str, Any] | None:
+def _finish_round(ctx: PairContext, finish: Any, out_dir: Path, *, refined: bool) -> dict[str, Any] | None:
     """The pair source's last word on the final model (SARA: extend its tracks when no pose-guided
     refinement did); once per model: a model it already finished is left as it is."""
     sparse = out_dir / "sparse"
@@ -397,9 +403,7 @@ def _finish_round(conf: PipelineConfig, ctx: PairContext, finish: Any, out_dir: 
     if result is None:
         shutil.rmtree(tmp, ignore_errors=True)
         return None
-    for other in sorted(sparse.iterdir()):  # the other components stay as they are
-        if other.is_dir() and other.name != "0":
-            shutil.copytree(other, tmp / other.name)
+    _copy_other_models(sparse, tmp)
     mapping.swap_in(tmp, sparse)
     digest = mapping.model_digest(sparse)
     # the map stage now describes the finished model: a re-run keeps it
@@ -424,9 +428,7 @@ def _refine_round(conf: PipelineConfig, ctx: PairContext, refine: Any, extra: li
     if result is None:
         shutil.rmtree(tmp, ignore_errors=True)
         return None
-    for other in sorted(sparse.iterdir()):  # the other components stay as they are
-        if other.is_dir() and other.name != "0":
-            shutil.copytree(other, tmp / other.name)
+    _copy_other_models(sparse, tmp)
     match.commit(work, out_dir / extract.DB_NAME, out_dir)
     _add_to_pairs_record(out_dir, len(extra), file_digest(staged))
     os.replace(staged, out_dir / PAIRS_NAME)

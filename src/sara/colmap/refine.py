@@ -306,14 +306,7 @@ def triangulate_and_adjust(model_dir: Path, db_path: Path, image_dir: Path, out_
         added = extend_tracks(rec, features_path, extension)
         if added:
             pycolmap.bundle_adjustment(rec, pycolmap.BundleAdjustmentOptions())
-    shutil.rmtree(tmp, ignore_errors=True)
-    tmp.mkdir(parents=True)
-    rec.write(str(tmp))
-    if out_dir.exists():
-        shutil.rmtree(out_dir)
-    tmp.rename(out_dir)
-    return {"num_points3d": float(rec.num_points3D()), "num_registered": float(rec.num_reg_images()),
-            "observations_added": float(added)}
+    return _write_model(rec, out_dir, added)
 
 
 def extend_and_adjust(model_dir: Path, out_dir: Path, features_path: Path,
@@ -325,6 +318,11 @@ def extend_and_adjust(model_dir: Path, out_dir: Path, features_path: Path,
     added = extend_tracks(rec, Path(features_path), extension)
     if added:
         pycolmap.bundle_adjustment(rec, pycolmap.BundleAdjustmentOptions())
+    return _write_model(rec, out_dir, added)
+
+
+def _write_model(rec: pycolmap.Reconstruction, out_dir: Path, added: int) -> dict[str, float]:
+    """Write `rec` to `out_dir` (replaced, through `<out_dir>.partial`); its counts."""
     tmp = out_dir.with_name(out_dir.name + ".partial")
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
