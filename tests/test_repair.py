@@ -26,3 +26,43 @@ def test_repair_pairs_best_links_into_main(tmp_path: Path):
     assert extra == [("b", "c"), ("b", "d")]
     two = repair_pairs(scores, pairs=[("a", "b")], main={"a", "b"}, left_out=["c"], per_view=2)
     assert two == [("a", "c"), ("b", "c")]
+
+
+def test_a_repair_that_leaves_most_of_its_views_out_is_not_repeated(tmp_path: Path, monkeypatch):
+    from types import SimpleNamespace
+
+    from sara.config import PipelineConfig
+    from sara.pairs import sara_source
+
+    registered = {"a", "b", "c"}
+    monkeypatch.setattr(sara_source.colmap, "registered_images", lambda model_dir: set(registered))
+
+    def fake_repair(scores, pairs, main, left_out, per_view):  # the first unmatched link into the model
+        done = {tuple(sorted(p)) for p in pairs}
+        return [next(p for p in (tuple(sorted((m, v))) for m in sorted(main)) if p not in done) for v in left_out]
+
+    monkeypatch.setattr(sara_source, "repair_pairs", fake_repair)
+    monkeypatch.setattr(sara_source, "pose_guided_round", lambda ctx, pairs, model_dir: [("a", "c")])
+    pairs = [("a", "b"), ("b", "c"), ("c", "d"), ("d", "e")]
+    header = "name0,name1,num_matches,num_inliers,overlap,parallax_deg,weight,accepted,reason,role\n"
+    (tmp_path / "scores.csv").write_text(header + "".join(f"{a},{b},50,40,0.1,5,0.1,true,,tree\n" for a, b in pairs))
+    ctx = SimpleNamespace(names=["a", "b", "c", "d", "e"], out_dir=tmp_path, conf=PipelineConfig())
+    model = tmp_path / "sparse" / "0"
+
+    first = sara_source.after_mapping(ctx, pairs, model)
+    assert first == [("a", "d"), ("a", "e")]
+    registered.add("d")  # the repair registered half of its views: repair again
+    second = sara_source.after_mapping(ctx, pairs + first, model)
+    assert second == [("b", "e")]
+    # e is still out after a repair meant for it: no third repair, the pose-guided pairs instead
+    third = sara_source.after_mapping(ctx, pairs + first + second, model)
+    assert third == [("a", "c")]
+    # and it stays so once the pose-guided pairs are matched
+    assert sara_source.after_mapping(ctx, pairs + first + second + third, model) == [("a", "c")]
+    # unless another view drops out of the model
+    registered.discard("d")
+    assert sara_source.after_mapping(ctx, pairs + first + second + third, model) == [("b", "d"), ("c", "e")]
+    # a record of another selection does not apply
+    (tmp_path / "scores.csv").write_text(header + "".join(f"{a},{b},50,40,0.1,5,0.1,true,,tree\n" for a, b in pairs[:3]))
+    registered.add("d")
+    assert sara_source.after_mapping(ctx, pairs + first + second, model) == [("c", "e")]
