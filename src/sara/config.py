@@ -212,11 +212,13 @@ class GraphConfig:
     pose_guided_max_view_angle_deg: float = 45.0
     """A point counts as covisible only if the two views see it from directions at most this far
     apart (degrees): SIFT seldom matches across wider angles."""
-    pose_guided_max_per_view: int = 0
+    pose_guided_max_per_view: int = 2
     """Most pose-guided pairs that touch one view (pairs; 0: no limit): the best pairs are taken in
-    order of weight, skipping a pair once one of its views has this many. 2 spreads the round evenly
-    (bm-moldGoldCape AUC@1 0.943 against 0.933, above exhaustive's 0.941) but costs templeRing 0.010
-    and castle 0.006 at AUC@1, so the default is no limit (docs/ACCURACY.md 12.6)."""
+    order of weight, skipping a pair once one of its views has this many. 2, twice a view's even
+    share at 1 pair per image, spreads the round over the views (raise it with
+    `pose_guided_pairs_per_image`). Measured against no limit (docs/ACCURACY.md 13.2): AUC@1
+    +0.009 to +0.025 on three stand-ins nobody tuned for and +0.010 on bm-moldGoldCape (above
+    exhaustive's), -0.005 on templeRing, -0.003 on castle and -0.001 on Herz-Jesus."""
     extend_tracks: bool = True
     """When the pose-guided round refines the model (or else, on the final model), add to its
     tracks the keypoints that observe its 3D points without a match saying so, then bundle-adjust
