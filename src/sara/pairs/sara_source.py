@@ -173,14 +173,16 @@ def after_mapping(ctx: PairContext, pairs: list[Pair], model_dir: Path) -> list[
     """
     main = colmap.registered_images(model_dir)
     left_out = left_out_views(ctx.names, pairs, main)
-    if left_out and not _repair_stalled(ctx, pairs, left_out):
+    key = _selection_key(ctx) if left_out else ""
+    if left_out and not _repair_stalled(ctx, key, pairs, left_out):
         extra = repair_pairs(ctx.out_dir / SCORES_NAME, pairs, main, left_out, ctx.conf.pairs.repair_pairs_per_view)
         room = max(ctx.conf.graph.pair_cap(len(ctx.names)) - len(pairs), len(left_out))
         extra = extra[:room] if len(extra) > room else extra
         if extra:
             logger.warning("%d views were left out of the main model: matching %d more pairs and mapping again",
                            len(left_out), len(extra))
-            _mark_repair(ctx, pairs + extra, left_out)
+            records.mark_done(ctx.out_dir, REPAIR_STAGE, key,
+                              {"left_out": sorted(left_out), "pairs": _pairs_key(pairs + extra), "stalled": False})
         return extra
     return pose_guided_round(ctx, pairs, model_dir)
 
@@ -189,9 +191,9 @@ def _pairs_key(pairs: list[Pair]) -> str:
     return fingerprint(sorted(tuple(sorted(p)) for p in pairs))
 
 
-def _repair_stalled(ctx: PairContext, pairs: list[Pair], left_out: list[str]) -> bool:
+def _repair_stalled(ctx: PairContext, key: str, pairs: list[Pair], left_out: list[str]) -> bool:
     """True when most views of the last repair round are still out of the main model (and no other
-    view has dropped out since).
+    view has dropped out since); `key`: the selection the record must belong to (`_selection_key`).
 
     That round's pairs, each left-out view's best candidates into the model, did not tie them to
     it; the next best are weaker still, and every repair round maps again (on a low-texture
@@ -200,7 +202,7 @@ def _repair_stalled(ctx: PairContext, pairs: list[Pair], left_out: list[str]) ->
     pairs of the views in the model.
     """
     record = records.read_record(ctx.out_dir, REPAIR_STAGE)
-    if not record or record.get("done") is not True or record.get("key") != _selection_key(ctx):
+    if not record or record.get("done") is not True or record.get("key") != key:
         return False
     info = record.get("info", {})
     before = set(info.get("left_out", []))
@@ -209,15 +211,10 @@ def _repair_stalled(ctx: PairContext, pairs: list[Pair], left_out: list[str]) ->
     still = before & set(left_out)
     if info.get("pairs") != _pairs_key(pairs) or set(left_out) - before or 2 * len(still) <= len(before):
         return False
-    records.mark_done(ctx.out_dir, REPAIR_STAGE, record["key"], {**info, "stalled": True})
+    records.mark_done(ctx.out_dir, REPAIR_STAGE, key, {**info, "stalled": True})
     logger.warning("%d of the %d views of the last repair round are still out of the main model: leaving them out",
                    len(still), len(before))
     return True
-
-
-def _mark_repair(ctx: PairContext, pairs_after: list[Pair], left_out: list[str]) -> None:
-    records.mark_done(ctx.out_dir, REPAIR_STAGE, _selection_key(ctx),
-                      {"left_out": sorted(left_out), "pairs": _pairs_key(pairs_after), "stalled": False})
 
 
 def _selection_key(ctx: PairContext) -> str:

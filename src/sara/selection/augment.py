@@ -36,6 +36,7 @@ from .spanning import (
     _check_per_edge,
     connected_components,
     maximum_spanning_forest,
+    take_capped_per_view,
 )
 
 logger = logging.getLogger(__name__)
@@ -105,23 +106,13 @@ def _add_loops(
 
 def _add_anchors(
     role: np.ndarray, edges: np.ndarray, weight: np.ndarray, parallax_deg: np.ndarray,
-    num_images: int, budget: int, max_per_view: int,
+    budget: int, max_per_view: int,
 ) -> None:
     """Mark the best ``parallax * w`` unselected accepted edges as "anchor", capped per view."""
     candidates = np.flatnonzero(role == "unselected")
     score = parallax_deg[candidates] * weight[candidates]
     candidates, score = candidates[score > 0], score[score > 0]
-    count = np.zeros(num_images, dtype=np.int64)
-    chosen: list[int] = []
-    for e in candidates[_ranked(candidates, score)].tolist():
-        if len(chosen) == budget:
-            break
-        i, j = edges[e]
-        if count[i] < max_per_view and count[j] < max_per_view:
-            count[i] += 1
-            count[j] += 1
-            chosen.append(e)
-    role[chosen] = "anchor"
+    role[take_capped_per_view(candidates[_ranked(candidates, score)], edges, budget, max_per_view)] = "anchor"
 
 
 def _median_incident_weight(num_images: int, edges: np.ndarray, weight: np.ndarray) -> np.ndarray:
@@ -334,7 +325,7 @@ def select_pairs(
         _add_loops(role, edges, weight, forest, budgets["loop"], conf)
     if budgets["anchor"] > 0:
         _add_anchors(
-            role, edges, weight, parallax_deg, num_images, budgets["anchor"],
+            role, edges, weight, parallax_deg, budgets["anchor"],
             conf.anchor_max_per_view,
         )
     if budgets["weak"] > 0:

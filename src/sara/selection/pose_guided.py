@@ -21,6 +21,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .spanning import take_capped_per_view
+
 #: ways to rank unmatched pairs (see `pair_scores`)
 RULES = ("weight", "covisible")
 
@@ -116,15 +118,4 @@ def choose_pairs(pairs: np.ndarray, cov: Covisibility, budget: int, *, rule: str
     order = usable[np.argsort(-score[usable], kind="stable")]
     if max_per_view <= 0:
         return order[:budget].astype(np.int64)
-    used: dict[int, int] = {}
-    chosen = []
-    for k in order:
-        a, b = int(pairs[k, 0]), int(pairs[k, 1])
-        if used.get(a, 0) >= max_per_view or used.get(b, 0) >= max_per_view:
-            continue
-        used[a] = used.get(a, 0) + 1
-        used[b] = used.get(b, 0) + 1
-        chosen.append(k)
-        if len(chosen) == budget:
-            break
-    return np.asarray(chosen, dtype=np.int64)
+    return np.asarray(take_capped_per_view(order, pairs, budget, max_per_view), dtype=np.int64)

@@ -225,3 +225,19 @@ class RootedForest:
 def tree_path_lengths(num_images: int, tree_edges: np.ndarray, pairs: np.ndarray) -> np.ndarray:
     """(Q,) float64 tree edges between the images of each of ``pairs: (Q, 2)``; inf across trees."""
     return RootedForest.from_edges(num_images, tree_edges).path_lengths(pairs)
+
+
+def take_capped_per_view(ranked: np.ndarray, edges: np.ndarray, budget: int, max_per_view: int) -> list[int]:
+    """The first ``budget`` of ``ranked`` (indices into ``edges: (E, 2)``, best first), skipping an
+    edge once one of its images is already in ``max_per_view`` taken edges."""
+    count: dict[int, int] = {}
+    taken: list[int] = []
+    for e in np.asarray(ranked).tolist():
+        if len(taken) == budget:
+            break
+        i, j = int(edges[e][0]), int(edges[e][1])
+        if count.get(i, 0) < max_per_view and count.get(j, 0) < max_per_view:
+            count[i] = count.get(i, 0) + 1
+            count[j] = count.get(j, 0) + 1
+            taken.append(e)
+    return taken
