@@ -66,6 +66,25 @@ def test_triangulate_and_adjust_keeps_poses_and_points(model: Path, tmp_path: Pa
     assert np.allclose(after.centers, before.centers, atol=1e-3 * np.ptp(before.centers))
 
 
+def test_bundle_adjustment_keeps_colmap_off_the_console(model: Path, tmp_path: Path, capfd):
+    """pycolmap's bundle adjustment turns COLMAP's console log on for the whole process; with the log
+    sent to a folder (as `sara run` does), nothing of it may reach the terminal, then or later."""
+    from sara import colmap
+
+    log = pycolmap.logging
+    saved = (log.logtostderr, log.alsologtostderr, log.stderrthreshold, log.minloglevel)
+    try:
+        colmap.send_log_to(tmp_path / "logs")
+        triangulate_and_adjust(model / "sparse" / "0", model / "database.db", model / "images", tmp_path / "out")
+        assert (log.logtostderr, log.alsologtostderr, log.stderrthreshold) == (False, False, 3)
+        log.info("a later COLMAP message")
+        err = capfd.readouterr().err
+        assert "bundle" not in err.lower() and "later COLMAP message" not in err
+        assert any("Global bundle adjustment" in f.read_text() for f in (tmp_path / "logs").iterdir())
+    finally:
+        log.logtostderr, log.alsologtostderr, log.stderrthreshold, log.minloglevel = saved
+
+
 def test_round_chooses_unmatched_pairs_within_its_budget_once(model: Path, tmp_path: Path):
     names = read_geometry(model / "sparse" / "0").names
     conf = make_config("sift-offline", ON)

@@ -223,6 +223,35 @@ def send_log_to(log_dir: Path | None, *, verbose: bool = False) -> None:
         logging_.set_log_destination(level, "")
 
 
+def bundle_adjust(rec: pycolmap.Reconstruction, options: pycolmap.BundleAdjustmentOptions | None = None) -> None:
+    """COLMAP's global bundle adjustment of `rec` (`pycolmap.bundle_adjustment`) without its console output.
+
+    pycolmap's call switches COLMAP's log to the console (glog's alsologtostderr, minloglevel 0) and
+    leaves it so: its report, and every later COLMAP message of the process, then reached the terminal
+    even with `--quiet`. Unless the log already goes to the console (`--verbose`), its own report is
+    kept off the terminal (it still reaches the log file) and the log settings are put back afterwards.
+    """
+    import sys
+
+    log = pycolmap.logging
+    saved = (log.logtostderr, log.alsologtostderr, log.stderrthreshold, log.minloglevel)
+    to_console = saved[0] or saved[1]
+    options = options or pycolmap.BundleAdjustmentOptions()
+    if to_console:
+        pycolmap.bundle_adjustment(rec, options)
+        return
+    sys.stderr.flush()
+    kept = os.dup(2)
+    try:
+        with open(os.devnull, "wb") as sink:
+            os.dup2(sink.fileno(), 2)
+        pycolmap.bundle_adjustment(rec, options)
+    finally:
+        os.dup2(kept, 2)
+        os.close(kept)
+        log.logtostderr, log.alsologtostderr, log.stderrthreshold, log.minloglevel = saved
+
+
 def set_seed(seed: int) -> None:
     pycolmap.set_random_seed(seed)
 

@@ -27,6 +27,7 @@ import numpy as np
 import pycolmap
 from scipy.spatial import cKDTree
 
+from .. import colmap
 from ..io.h5 import FeatureCache
 
 logger = logging.getLogger(__name__)
@@ -299,13 +300,13 @@ def triangulate_and_adjust(model_dir: Path, db_path: Path, image_dir: Path, out_
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
     rec = _triangulate(model_dir, db_path, image_dir, tmp, clear_points=True, num_threads=num_threads, seed=seed)
-    pycolmap.bundle_adjustment(rec, pycolmap.BundleAdjustmentOptions())
+    colmap.bundle_adjust(rec)
     added = 0
     if extension is not None and features_path is not None:
         # on the adjusted poses, whose projections are closer to the keypoints; then adjust again
         added = extend_tracks(rec, features_path, extension)
         if added:
-            pycolmap.bundle_adjustment(rec, pycolmap.BundleAdjustmentOptions())
+            colmap.bundle_adjust(rec)
     return _write_model(rec, out_dir, added)
 
 
@@ -317,7 +318,7 @@ def extend_and_adjust(model_dir: Path, out_dir: Path, features_path: Path,
     rec = pycolmap.Reconstruction(str(model_dir))
     added = extend_tracks(rec, Path(features_path), extension)
     if added:
-        pycolmap.bundle_adjustment(rec, pycolmap.BundleAdjustmentOptions())
+        colmap.bundle_adjust(rec)
     return _write_model(rec, out_dir, added)
 
 
