@@ -95,3 +95,28 @@ def test_sara_extends_the_tracks_of_the_final_model_once(tmp_path: Path, synthet
     run(make_config("sift-offline", {"graph.pose_guided_pairs_per_image": 0, "graph.extend_tracks": False}),
         images, off, progress=False)
     assert "extension" not in read_json(off / "run.json")["stages"].get("repair", {})
+
+
+def test_weakly_matched_views_get_pairs_before_the_first_mapping(tmp_path: Path, synthetic_scene, caplog):
+    """With a bar no view reaches, SARA matches more pairs before mapping; pairs.txt, the records
+    and the report count them, and a second run changes nothing."""
+    images, gt = synthetic_scene
+    caplog.set_level("INFO", logger="sara")
+    conf = make_config("sift-offline", {"pairs.min_view_inliers": 10**6})
+    out = tmp_path / "out"
+    report = run(conf, images, out, gt_dir=gt, progress=False)
+    assert "more pairs before mapping" in caplog.text
+    pairs = report.stages["pairs"]
+    added = pairs["num_added_before_mapping"]
+    assert added > 0
+    assert pairs["num_pairs"] == pairs["num_selected"] + added + pairs.get("num_added_after_mapping", 0)
+    lines = (out / "pairs.txt").read_text().splitlines()
+    assert len(lines) == pairs["num_pairs"]
+    assert "added before mapping" in (out / "report.md").read_text()
+    assert report.metrics["num_registered"] == 10
+    caplog.clear()
+    again = run(conf, images, out, gt_dir=gt, progress=False)
+    assert "more pairs before mapping" not in caplog.text
+    assert (out / "pairs.txt").read_text().splitlines() == lines
+    assert again.stages["pairs"]["num_pairs"] == pairs["num_pairs"]
+    assert again.metrics["auc"] == report.metrics["auc"]

@@ -109,6 +109,14 @@ class PairsConfig:
     # for a repair before and after it (docs/ACCURACY.md)
     repair_rounds: int = 3
     repair_pairs_per_view: int = 3
+    # SARA only, before the first mapping: a view whose verified pairs hold fewer inlier matches
+    # than min_view_inliers in all gets up to support_pairs_per_view more accepted candidates (best
+    # weight first), matched before the mapper runs, within half of the room the pair cap leaves
+    # (`sara.pairs.support`; 0 disables). Views of the shared scenes sum 223 or more (thousands on
+    # most); on low-texture ones a view's few pairs of a few dozen inliers each leave it
+    # unregistered and the model splits (docs/ACCURACY.md, section 14)
+    min_view_inliers: int = 200
+    support_pairs_per_view: int = 3
 
     def __post_init__(self) -> None:
         validate(self)
@@ -454,6 +462,8 @@ RULES: dict[str, tuple[Any, str]] = {
     "pairs.vocab_num_words": _ints(2),
     "pairs.repair_rounds": _ints(0),
     "pairs.repair_pairs_per_view": _ints(1),
+    "pairs.min_view_inliers": _ints(0),
+    "pairs.support_pairs_per_view": _ints(0),
     "match.backend": _name(),
     "match.device": _device(),
     "match.weights": _text(),

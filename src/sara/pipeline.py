@@ -307,15 +307,52 @@ def match_pairs(conf: PipelineConfig, pairs_path: Path, features_path: Path, out
 
 
 def map_model(conf: PipelineConfig, images_root: Path, out_dir: Path, *, db_path: Path | None = None,
-              progress: bool = True, overwrite: bool = False) -> Path:
+              progress: bool = True, overwrite: bool = False, staged: Path | None = None,
+              num_staged: int = 0) -> Path:
     """Stage `map` on the matches of `db_path` (default the output's database; a copy made by the
-    match stage is moved into place just before the new model); returns `sparse/`."""
+    match stage is moved into place just before the new model); returns `sparse/`. `staged`: the
+    pairs file those matches were made from when it is not yet `pairs.txt` (`num_staged` pairs
+    added before mapping), moved into place with them."""
     db = out_dir / extract.DB_NAME
     work = Path(db_path or db)
     upstream = fingerprint(match.matches_digest(work))
+
+    def commit() -> None:
+        match.commit(work, db, out_dir)
+        if staged is not None:
+            _add_to_pairs_record(out_dir, num_staged, file_digest(staged), field="num_added_before_mapping")
+            os.replace(staged, out_dir / PAIRS_NAME)
+
     return mapping.run(conf.map, work, images_root, out_dir, seed=conf.seed, upstream_key=upstream,
-                       progress=progress, min_num_inliers=conf.match.min_num_inliers,
-                       commit=lambda: match.commit(work, db, out_dir), overwrite=overwrite)
+                       progress=progress, min_num_inliers=conf.match.min_num_inliers, commit=commit,
+                       overwrite=overwrite)
+
+
+def support_round(conf: PipelineConfig, images: ImageSet, features_path: Path, out_dir: Path, work: Path, *,
+                  executor: Executor | None = None, progress: bool = True) -> tuple[Path, Path | None, int]:
+    """Before the first mapping, let the pair source add pairs for weakly matched views (SARA:
+    `sara.pairs.support`) and match them. Returns the database to map, the pairs file it was matched
+    from when that is not yet `pairs.txt` (None when nothing was added) and the number of pairs added.
+    The matching time of these pairs is added to the match stage's."""
+    step = get_after_mapping(conf.pairs.method)
+    before = getattr(step, "before_mapping", None) if step is not None else None
+    if before is None:
+        return work, None, 0
+    ctx = pair_context(conf, images, features_path, out_dir, executor=executor, progress=progress)
+    pairs = read_pairs(out_dir / PAIRS_NAME, known_names=images.names)
+    extra = before(ctx, pairs, work)
+    if not extra:
+        return work, None, 0
+    first = records.read_record(out_dir, match.STAGE) or {}
+    staged = out_dir / ".sara" / STAGED_PAIRS
+    write_pairs(staged, pairs + extra)
+    work = match_pairs(conf, staged, features_path, out_dir, executor=executor, progress=progress, beside=True)
+    record = records.read_record(out_dir, match.STAGE) or {}
+    if record.get("key") != first.get("key") and first.get("done") is True:  # matched now: both times count
+        info = {**record.get("info", {}),
+                "time_s": record.get("info", {}).get("time_s", 0.0) + first.get("info", {}).get("time_s", 0.0)}
+        records.mark_done(out_dir, match.STAGE, record.get("key", ""), info, outputs=record.get("outputs"))
+    return work, staged, len(extra)
 
 
 def after_mapping_rounds(conf: PipelineConfig, images: ImageSet, features_path: Path, out_dir: Path, *,
@@ -462,11 +499,13 @@ def _map_round(conf: PipelineConfig, images_root: Path, out_dir: Path, work: Pat
                 min_num_inliers=conf.match.min_num_inliers, commit=commit, input_model=main if extend else None)
 
 
-def _add_to_pairs_record(out_dir: Path, num_added: int, pairs_digest: dict[str, Any] | None) -> None:
+def _add_to_pairs_record(out_dir: Path, num_added: int, pairs_digest: dict[str, Any] | None, *,
+                         field: str = "num_added_after_mapping") -> None:
     record = records.read_record(out_dir, PAIRS_STAGE) or {}
     info = record.get("info", {})
-    info["num_added_after_mapping"] = info.get("num_added_after_mapping", 0) + num_added
-    info["num_pairs"] = info.get("num_selected", info.get("num_pairs", 0)) + info["num_added_after_mapping"]
+    info[field] = info.get(field, 0) + num_added
+    info["num_pairs"] = (info.get("num_selected", info.get("num_pairs", 0)) + info.get("num_added_after_mapping", 0)
+                         + info.get("num_added_before_mapping", 0))
     outputs = {**record.get("outputs", {}), PAIRS_NAME: pairs_digest}
     records.mark_done(out_dir, PAIRS_STAGE, record.get("key", ""), info, outputs=outputs)
 
@@ -558,12 +597,17 @@ def _run_stages(conf: PipelineConfig, images: ImageSet, images_root: Path, out_d
         return report
     work = match_pairs(conf, pairs_path, features, out_dir, executor=executor, progress=progress, beside=True,
                        overwrite=overwrite)
+    work, staged, num_staged = support_round(conf, images, features, out_dir, work, executor=executor,
+                                             progress=progress)
     report.stages["match"] = records.done_info(out_dir, match.STAGE)
     try:
-        map_model(conf, images.root, out_dir, db_path=work, progress=progress, overwrite=overwrite)
+        map_model(conf, images.root, out_dir, db_path=work, progress=progress, overwrite=overwrite, staged=staged,
+                  num_staged=num_staged)
     except NoResultError:
         if work != out_dir / extract.DB_NAME:
             colmap.remove_database(work)  # the previous matches stay with the previous model
+        if staged is not None:
+            staged.unlink(missing_ok=True)
         raise
     report.stages["map"] = records.done_info(out_dir, mapping.STAGE)
     _collect_after_mapping(report, after_mapping_rounds(conf, images, features, out_dir, executor=executor,
@@ -732,12 +776,13 @@ def render_report(report: RunReport) -> str:
     """A short human-readable summary of a run (Markdown)."""
     s = report.stages
     ex, pr, ma, mp = s.get("extract", {}), s.get("pairs", {}), s.get("match", {}), s.get("map", {})
-    added = pr.get("num_added_after_mapping", 0)
+    added, before = pr.get("num_added_after_mapping", 0), pr.get("num_added_before_mapping", 0)
     rows = [
         [f"extract ({ex.get('backend', 'sift')})", f"{ex.get('time_s', 0):.1f}",
          f"{ex.get('keypoints_mean', 0):.0f} keypoints per image"],
         [f"pairs ({pr.get('method')})", f"{pr.get('time_s', 0):.1f}",
          f"{pr.get('num_pairs', 0)} pairs ({100 * pr.get('fraction_of_exhaustive', 0):.1f}% of exhaustive)"
+         + (f", {before} of them added before mapping for weakly matched views" if before else "")
          + (f", {added} of them added after mapping" if added else "")],
         [f"match ({ma.get('matcher', '')})", f"{ma.get('time_s', 0):.1f}",
          f"{ma.get('num_verified_pairs', 0)} verified pairs, "

@@ -172,6 +172,22 @@ def verified_graph(db_path: Path, min_num_inliers: int) -> tuple[int, int, list[
     return len(rows), len(parent), sorted(groups.values(), reverse=True), max((int(r) for _, r in rows), default=0)
 
 
+def verified_inliers(db_path: Path, min_num_inliers: int) -> dict[tuple[str, str], int]:
+    """Verified inlier matches of each pair with at least `min_num_inliers`, keyed by the two image
+    names in sorted order (read with SQLite: the file is not touched)."""
+    (rows, images) = _query(db_path, ("SELECT pair_id, rows FROM two_view_geometries WHERE rows >= ?",
+                                      (int(min_num_inliers),)),
+                            ("SELECT image_id, name FROM images", ()))
+    name = {int(i): n for i, n in images}
+    out: dict[tuple[str, str], int] = {}
+    for pair_id, count in rows:
+        i, j = pycolmap.pair_id_to_image_pair(int(pair_id))
+        if int(i) in name and int(j) in name:
+            a, b = sorted((name[int(i)], name[int(j)]))
+            out[(a, b)] = int(count)
+    return out
+
+
 def mapper_init_requirements() -> tuple[int, float]:
     """(inlier matches, triangulation angle in degrees) that COLMAP's incremental mapper needs
     between two views to start a model."""

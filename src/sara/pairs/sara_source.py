@@ -25,6 +25,7 @@ from ..io.pairs import Pair
 from ..io.scores import concat_scores, read_scores_csv, write_scores_csv
 from . import PairContext, PairResult, pose_guided
 from .repair import left_out_views, repair_pairs
+from .support import support_pairs, view_inliers
 
 logger = logging.getLogger(__name__)
 
@@ -32,6 +33,8 @@ SCORES_NAME = "scores.csv"
 RESCUE_REASON = "low_parallax"
 #: record of the last repair round: the views it was for and the pairs it led to
 REPAIR_STAGE = "repair_views"
+#: record of the pairs added before the first mapping for weakly matched views
+SUPPORT_STAGE = "support"
 
 
 def select(ctx: PairContext) -> PairResult:
@@ -187,6 +190,36 @@ def after_mapping(ctx: PairContext, pairs: list[Pair], model_dir: Path) -> list[
     return pose_guided_round(ctx, pairs, model_dir)
 
 
+def before_mapping(ctx: PairContext, pairs: list[Pair], db_path: Path) -> list[Pair]:
+    """More pairs, matched before the first mapping, for the views whose verified pairs in `db_path`
+    hold few inlier matches (`support.py`); once per selection: [] once they are matched, the same
+    pairs again after an interruption."""
+    conf = ctx.conf.pairs
+    if conf.min_view_inliers <= 0 or conf.support_pairs_per_view <= 0:
+        return []
+    key = fingerprint({"selection": _selection_key(ctx), "min_view_inliers": conf.min_view_inliers,
+                       "per_view": conf.support_pairs_per_view})
+    record = records.read_record(ctx.out_dir, SUPPORT_STAGE)
+    if record and record.get("done") is True and record.get("key") == key:
+        done = [(a, b) for a, b in record.get("info", {}).get("pairs", [])]
+        matched = {tuple(sorted(p)) for p in pairs}
+        return [] if all(tuple(sorted(p)) in matched for p in done) else done
+    support = view_inliers(ctx.names, pairs, colmap.verified_inliers(db_path, ctx.conf.match.min_num_inliers))
+    graph = ctx.conf.graph
+    cap = graph.densify_cap(len(ctx.names)) if graph.densify else graph.pair_cap(len(ctx.names))
+    weak = sum(1 for s in support.values() if s < conf.min_view_inliers)
+    # at most half of the room the cap leaves: the pose-guided round after mapping keeps the rest
+    extra = support_pairs(ctx.out_dir / SCORES_NAME, pairs, support, conf.min_view_inliers,
+                          conf.support_pairs_per_view, (cap - len(pairs)) // 2) if weak else []
+    records.mark_done(ctx.out_dir, SUPPORT_STAGE, key, {
+        "num_weak_views": weak, "view_inliers_median": float(np.median(list(support.values()) or [0])),
+        "pairs": [list(p) for p in extra]})
+    if extra:
+        logger.info("%d views have fewer than %d verified inlier matches in all: matching %d more pairs before "
+                    "mapping", weak, conf.min_view_inliers, len(extra))
+    return extra
+
+
 def _pairs_key(pairs: list[Pair]) -> str:
     return fingerprint(sorted(tuple(sorted(p)) for p in pairs))
 
@@ -252,6 +285,8 @@ def _first_round(scores_csv: Path) -> list[Pair]:
 after_mapping.refine = pose_guided.refine  # type: ignore[attr-defined]
 #: and extend the final model's tracks when no refinement did
 after_mapping.finish = pose_guided.finish  # type: ignore[attr-defined]
+#: before the first mapping: more pairs for weakly matched views
+after_mapping.before_mapping = before_mapping  # type: ignore[attr-defined]
 
 
 def rescue_low_parallax(num_images: int, edges: np.ndarray, roles: list[str], scores: scoring.PairScores) -> int:

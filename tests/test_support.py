@@ -1,0 +1,65 @@
+"""Pairs added before the first mapping for weakly matched views (`sara.pairs.support`)."""
+
+from pathlib import Path
+from types import SimpleNamespace
+
+from sara.config import PipelineConfig, make_config
+from sara.pairs import sara_source
+from sara.pairs.support import support_pairs, view_inliers
+
+HEADER = "name0,name1,num_matches,num_inliers,overlap,parallax_deg,weight,accepted,reason,role\n"
+
+
+def _scores(path: Path, rows) -> Path:
+    """rows: (name0, name1, weight, accepted, role)."""
+    path.write_text(HEADER + "".join(
+        f"{a},{b},50,40,0.1,5,{w},{'true' if ok else 'false'},{'' if ok else 'few_inliers'},{role}\n"
+        for a, b, w, ok, role in rows))
+    return path
+
+
+def test_view_inliers_sums_the_verified_matches_of_each_view():
+    inliers = {("a", "b"): 100, ("b", "c"): 40}
+    assert view_inliers(["a", "b", "c", "d"], [("b", "a"), ("b", "c"), ("c", "d")], inliers) == \
+        {"a": 100, "b": 140, "c": 40, "d": 0}
+
+
+def test_best_accepted_candidates_of_weak_views_first_within_the_limits(tmp_path: Path):
+    scores = _scores(tmp_path / "scores.csv", [
+        ("a", "b", 0.9, True, "tree"), ("b", "c", 0.8, True, "tree"),
+        ("a", "c", 0.5, True, "unselected"), ("c", "d", 0.7, True, "unselected"),
+        ("c", "e", 0.6, True, "unselected"), ("c", "f", 0.99, False, "rejected"),
+        ("a", "d", 0.4, True, "unselected"), ("a", "e", 0.3, True, "unselected"),
+    ])
+    pairs = [("a", "b"), ("b", "c")]
+    support = {"a": 150, "b": 900, "c": 50, "d": 0, "e": 0, "f": 0}
+    # weak: a, c, d, e, f. By weight: c-d (0.7) for c and d; c-e (0.6) for e; a-c (0.5) for a;
+    # a-d, a-e: both ends served; f: only a rejected candidate
+    extra = support_pairs(scores, pairs, support, min_inliers=200, per_view=1, room=10)
+    assert extra == sorted([("c", "d"), ("c", "e"), ("a", "c")])
+    # how weak a weak view is does not reorder anything (inlier counts vary a little between runs)
+    shuffled = {**support, "a": 10, "c": 190, "d": 150}
+    assert support_pairs(scores, pairs, shuffled, min_inliers=200, per_view=1, room=10) == extra
+    assert support_pairs(scores, pairs, support, min_inliers=200, per_view=1, room=2) == [("c", "d"), ("c", "e")]
+    assert support_pairs(scores, pairs, support, min_inliers=200, per_view=3, room=10) == \
+        [("a", "c"), ("a", "d"), ("a", "e"), ("c", "d"), ("c", "e")]
+    assert support_pairs(scores, pairs, {"a": 900, "b": 900, "c": 900}, min_inliers=200, per_view=3, room=10) == []
+    assert support_pairs(scores, pairs, support, min_inliers=200, per_view=0, room=10) == []
+
+
+def test_the_source_adds_support_pairs_once_per_selection(tmp_path: Path, monkeypatch):
+    _scores(tmp_path / "scores.csv", [
+        ("a", "b", 0.9, True, "tree"), ("b", "c", 0.8, True, "tree"), ("a", "c", 0.5, True, "unselected")])
+    inliers = {("a", "b"): 1000, ("b", "c"): 60}  # c is weak; d-h have no candidate
+    monkeypatch.setattr(sara_source.colmap, "verified_inliers", lambda db, min_num_inliers: dict(inliers))
+    names = ["a", "b", "c", "d", "e", "f", "g", "h"]  # the cap of all rounds leaves room for 5 more pairs
+    ctx = SimpleNamespace(names=names, out_dir=tmp_path, conf=PipelineConfig())
+    pairs = [("a", "b"), ("b", "c")]
+    extra = sara_source.before_mapping(ctx, pairs, tmp_path / "database.db")
+    assert extra == [("a", "c")]
+    # interrupted before they were matched: the same pairs; once matched: none, whatever the matches say
+    assert sara_source.before_mapping(ctx, pairs, tmp_path / "database.db") == [("a", "c")]
+    inliers[("a", "c")] = 0
+    assert sara_source.before_mapping(ctx, pairs + extra, tmp_path / "database.db") == []
+    off = SimpleNamespace(names=ctx.names, out_dir=tmp_path, conf=make_config(overrides={"pairs.min_view_inliers": 0}))
+    assert sara_source.before_mapping(off, pairs, tmp_path / "database.db") == []
