@@ -24,7 +24,7 @@ def test_view_inliers_sums_the_verified_matches_of_each_view():
         {"a": 100, "b": 140, "c": 40, "d": 0}
 
 
-def test_best_accepted_candidates_of_weak_views_first_within_the_limits(tmp_path: Path):
+def test_weakest_views_first_best_accepted_candidates_within_the_limits(tmp_path: Path):
     scores = _scores(tmp_path / "scores.csv", [
         ("a", "b", 0.9, True, "tree"), ("b", "c", 0.8, True, "tree"),
         ("a", "c", 0.5, True, "unselected"), ("c", "d", 0.7, True, "unselected"),
@@ -33,13 +33,16 @@ def test_best_accepted_candidates_of_weak_views_first_within_the_limits(tmp_path
     ])
     pairs = [("a", "b"), ("b", "c")]
     support = {"a": 150, "b": 900, "c": 50, "d": 0, "e": 0, "f": 0}
-    # weak: a, c, d, e, f. By weight: c-d (0.7) for c and d; c-e (0.6) for e; a-c (0.5) for a;
-    # a-d, a-e: both ends served; f: only a rejected candidate
+    # weakest first: d, e, f (no pair yet), then c, then a. d: c-d (0.7); e: c-e (0.6), c now has
+    # two; f: only a rejected candidate; c: served; a: a-c (0.5)
     extra = support_pairs(scores, pairs, support, min_inliers=200, per_view=1, room=10)
     assert extra == sorted([("c", "d"), ("c", "e"), ("a", "c")])
-    # how weak a weak view is does not reorder anything (inlier counts vary a little between runs)
-    shuffled = {**support, "a": 10, "c": 190, "d": 150}
-    assert support_pairs(scores, pairs, shuffled, min_inliers=200, per_view=1, room=10) == extra
+    assert support_pairs(scores, pairs, support, min_inliers=200, per_view=1, room=1) == [("c", "d")]
+    # `order` ranks the weak views (the set is still `support`'s): a first takes its best, a-c
+    order = {"a": 0, "b": 0, "c": 5, "d": 9, "e": 9, "f": 9}
+    assert support_pairs(scores, pairs, support, min_inliers=200, per_view=1, room=1, order=order) == [("a", "c")]
+    assert support_pairs(scores, pairs, {**support, "a": 900}, min_inliers=200, per_view=1, room=1,
+                         order=order) == [("c", "d")]
     assert support_pairs(scores, pairs, support, min_inliers=200, per_view=1, room=2) == [("c", "d"), ("c", "e")]
     assert support_pairs(scores, pairs, support, min_inliers=200, per_view=3, room=10) == \
         [("a", "c"), ("a", "d"), ("a", "e"), ("c", "d"), ("c", "e")]
@@ -52,6 +55,7 @@ def test_the_source_adds_support_pairs_once_per_selection(tmp_path: Path, monkey
         ("a", "b", 0.9, True, "tree"), ("b", "c", 0.8, True, "tree"), ("a", "c", 0.5, True, "unselected")])
     inliers = {("a", "b"): 1000, ("b", "c"): 60}  # c is weak; d-h have no candidate
     monkeypatch.setattr(sara_source.colmap, "verified_inliers", lambda db, min_num_inliers: dict(inliers))
+    monkeypatch.setattr(sara_source.colmap, "match_counts", lambda db: dict(inliers))
     names = ["a", "b", "c", "d", "e", "f", "g", "h"]  # the cap of all rounds leaves room for 5 more pairs
     ctx = SimpleNamespace(names=names, out_dir=tmp_path, conf=PipelineConfig())
     pairs = [("a", "b"), ("b", "c")]

@@ -188,6 +188,21 @@ def verified_inliers(db_path: Path, min_num_inliers: int) -> dict[tuple[str, str
     return out
 
 
+def match_counts(db_path: Path) -> dict[tuple[str, str], int]:
+    """Matches (before geometric verification) of each matched pair, keyed by the two image names
+    in sorted order. Unlike the verified inlier counts they do not vary between runs."""
+    (rows, images) = _query(db_path, ("SELECT pair_id, rows FROM matches", ()),
+                            ("SELECT image_id, name FROM images", ()))
+    name = {int(i): n for i, n in images}
+    out: dict[tuple[str, str], int] = {}
+    for pair_id, count in rows:
+        i, j = pycolmap.pair_id_to_image_pair(int(pair_id))
+        if int(i) in name and int(j) in name:
+            a, b = sorted((name[int(i)], name[int(j)]))
+            out[(a, b)] = int(count or 0)
+    return out
+
+
 def mapper_init_requirements() -> tuple[int, float]:
     """(inlier matches, triangulation angle in degrees) that COLMAP's incremental mapper needs
     between two views to start a model."""

@@ -210,7 +210,8 @@ def before_mapping(ctx: PairContext, pairs: list[Pair], db_path: Path) -> list[P
     weak = sum(1 for s in support.values() if s < conf.min_view_inliers)
     # at most half of the room the cap leaves: the pose-guided round after mapping keeps the rest
     extra = support_pairs(ctx.out_dir / SCORES_NAME, pairs, support, conf.min_view_inliers,
-                          conf.support_pairs_per_view, (cap - len(pairs)) // 2) if weak else []
+                          conf.support_pairs_per_view, (cap - len(pairs)) // 2,
+                          order=view_inliers(ctx.names, pairs, colmap.match_counts(db_path))) if weak else []
     records.mark_done(ctx.out_dir, SUPPORT_STAGE, key, {
         "num_weak_views": weak, "view_inliers_median": float(np.median(list(support.values()) or [0])),
         "pairs": [list(p) for p in extra]})

@@ -6,10 +6,11 @@ image) a view of the selection may end up with two or three verified pairs of a 
 COLMAP's mapper then fails to register it, starts new models, and the repair round after mapping
 maps everything again (docs/ACCURACY.md, "Time, and mapping a sparse graph"). Here each view's
 verified inlier matches are summed over its pairs; a view below `pairs.min_view_inliers` gets up to
-`pairs.support_pairs_per_view` more of its accepted candidates (the scorer's best weight first),
-matched before the mapper runs. It takes at most half of the room that the
-pair cap of all rounds leaves after the first round; the pose-guided round keeps the rest. Views of
-well-textured scenes sum hundreds to thousands of inliers and get nothing (docs/ACCURACY.md, section 14).
+`pairs.support_pairs_per_view` more of its best accepted candidates (by the scorer's weight),
+weakest views first (fewest matches before verification), matched before the mapper runs. It
+takes at most half of the room that the pair cap of all rounds leaves after the first round; the
+pose-guided round keeps the rest. Views of well-textured scenes sum hundreds to thousands of
+inliers and get nothing (docs/ACCURACY.md, section 14).
 """
 
 from __future__ import annotations
@@ -33,31 +34,40 @@ def view_inliers(names: list[str], pairs: list[Pair], inliers: dict[tuple[str, s
 
 
 def support_pairs(scores_csv: Path, pairs: list[Pair], support: dict[str, int], min_inliers: int,
-                  per_view: int, room: int) -> list[Pair]:
-    """Unselected accepted candidates of the views whose `support` is below `min_inliers`, best
-    scorer weight first, up to `per_view` for each such view and `room` in all; sorted.
+                  per_view: int, room: int, order: dict[str, int] | None = None) -> list[Pair]:
+    """Up to `per_view` unselected accepted candidates (best scorer weight first) for each view whose
+    `support` is below `min_inliers`, weakest views first, at most `room` pairs in all; sorted.
 
-    A pair counts for both of its views. The order is the scorer's (deterministic), not the
-    views' support: verified inlier counts vary by a few between identical runs (COLMAP's
-    multi-threaded RANSAC), which may only move a view across `min_inliers`.
+    A pair added for one view counts for the other view of the pair too. Weakest means the lowest
+    `order` (default: `support`): the caller passes a measure that does not vary between runs
+    (matches before verification), since verified inlier counts vary by a few (COLMAP's
+    multi-threaded RANSAC) and an order by them changed the pairs from run to run.
     """
-    weak = {v for v, s in support.items() if s < min_inliers}
+    rank = order if order is not None else support
+    weak = sorted((v for v, s in support.items() if s < min_inliers), key=lambda v: (rank.get(v, 0), v))
     if not weak or per_view <= 0 or room <= 0:
         return []
     chosen = {tuple(sorted(p)) for p in pairs}
+    targets = set(weak)
+    options: dict[str, list[tuple[float, tuple[str, str]]]] = defaultdict(list)
     scores, _ = read_scores_csv(scores_csv)
-    options = sorted((-float(scores.weight[k]), tuple(sorted((a, b))))
-                     for k, (a, b) in enumerate(zip(scores.name0, scores.name1))
-                     if scores.accepted[k] and (a in weak or b in weak))
+    for k, (a, b) in enumerate(zip(scores.name0, scores.name1)):
+        pair = tuple(sorted((a, b)))
+        if not scores.accepted[k] or pair in chosen:
+            continue
+        for view in pair:
+            if view in targets:
+                options[view].append((-float(scores.weight[k]), pair))
     added: dict[str, int] = defaultdict(int)
     extra: list[tuple[str, str]] = []
-    for _, pair in options:
-        if len(extra) >= room:
-            break
-        if pair in chosen or not any(v in weak and added[v] < per_view for v in pair):
-            continue
-        chosen.add(pair)
-        extra.append(pair)
-        for view in pair:
-            added[view] += 1
+    for view in weak:
+        for _, pair in sorted(options[view]):
+            if added[view] >= per_view or len(extra) >= room:
+                break
+            if pair in chosen:
+                continue
+            chosen.add(pair)
+            extra.append(pair)
+            for end in pair:
+                added[end] += 1
     return sorted(extra)

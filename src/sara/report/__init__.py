@@ -77,7 +77,8 @@ class RunData:
 
     def edge_roles(self) -> dict[Pair, str]:
         """Role of every pair to draw: the scored candidates' roles; matched pairs outside them are
-        `repair` (added after mapping) in a SARA run and `selected` in any other run."""
+        `repair` in a SARA run (added after the first round: for weakly matched views before
+        mapping, then by the repair and pose-guided rounds) and `selected` in any other run."""
         roles: dict[Pair, str] = {}
         if self.scores is not None:
             roles.update(zip(self.scores.pairs, self.scores.role))
