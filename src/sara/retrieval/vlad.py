@@ -17,6 +17,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
+from scipy import sparse
 from tqdm import tqdm
 
 from ..config import RetrievalConfig
@@ -36,9 +37,14 @@ _EPS = 1e-12
 # ---------------------------------------------------------------------------------------------
 
 
-def squared_distances(x: np.ndarray, centers: np.ndarray) -> np.ndarray:
-    """(N, D), (K, D) -> (N, K) float32 squared Euclidean distances (clipped at 0)."""
-    d2 = (x * x).sum(1)[:, None] - 2.0 * (x @ centers.T) + (centers * centers).sum(1)[None, :]
+def squared_distances(x: np.ndarray, centers: np.ndarray, x_sq: np.ndarray | None = None) -> np.ndarray:
+    """(N, D), (K, D) -> (N, K) float32 squared Euclidean distances (clipped at 0); `x_sq`: the
+    rows' squared norms when already known (k-means computes them once)."""
+    x_sq = np.einsum("nd,nd->n", x, x) if x_sq is None else x_sq
+    d2 = x @ centers.T
+    d2 *= -2.0
+    d2 += x_sq[:, None]
+    d2 += np.einsum("kd,kd->k", centers, centers)[None, :]
     return np.maximum(d2, 0.0, out=d2)
 
 
@@ -50,26 +56,28 @@ def assign_words(x: np.ndarray, codebook: np.ndarray) -> np.ndarray:
 
 
 def sum_by_label(x: np.ndarray, labels: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
-    """Row sums per label: (N, D), (N,) labels in [0, k) -> (k, D) sums (x's dtype), (k,) int64 counts."""
+    """Row sums per label: (N, D), (N,) labels in [0, k) -> (k, D) sums (x's dtype), (k,) int64 counts.
+
+    A sparse (k, N) indicator times `x`: no copy of `x` (sorting the rows by label and reducing
+    took 60% of the codebook's k-means)."""
     counts = np.bincount(labels, minlength=k).astype(np.int64)
-    sums = np.zeros((k, x.shape[1]), dtype=x.dtype)
-    nonempty = counts > 0
-    if len(x):
-        starts = np.concatenate([[0], np.cumsum(counts)[:-1]])[nonempty]
-        sums[nonempty] = np.add.reduceat(x[np.argsort(labels, kind="stable")], starts, axis=0)
-    return sums, counts
+    if len(x) == 0:
+        return np.zeros((k, x.shape[1]), dtype=x.dtype), counts
+    indicator = sparse.csr_matrix((np.ones(len(labels), dtype=x.dtype), (labels, np.arange(len(labels)))),
+                                  shape=(k, len(labels)))
+    return np.asarray(indicator @ x, dtype=x.dtype), counts
 
 
-def _kmeans_pp_init(x: np.ndarray, k: int, rng: np.random.Generator) -> np.ndarray:
-    """k-means++ seeding: (k, D) float32 rows chosen from `x`."""
+def _kmeans_pp_init(x: np.ndarray, k: int, rng: np.random.Generator, x_sq: np.ndarray) -> np.ndarray:
+    """k-means++ seeding: (k, D) float32 rows chosen from `x` (`x_sq`: its rows' squared norms)."""
     centers = np.empty((k, x.shape[1]), dtype=np.float32)
     centers[0] = x[rng.integers(len(x))]
-    d2 = squared_distances(x, centers[:1])[:, 0]
+    d2 = squared_distances(x, centers[:1], x_sq)[:, 0]
     for i in range(1, k):
         total = float(d2.sum())
         idx = int(rng.choice(len(x), p=d2 / total)) if total > 0 else int(rng.integers(len(x)))
         centers[i] = x[idx]
-        d2 = np.minimum(d2, squared_distances(x, centers[i:i + 1])[:, 0])
+        d2 = np.minimum(d2, squared_distances(x, centers[i:i + 1], x_sq)[:, 0])
     return centers
 
 
@@ -83,10 +91,11 @@ def kmeans(x: np.ndarray, k: int, *, seed: int = 0, iterations: int = KMEANS_ITE
     if k < 1 or len(x) < k:
         raise ValueError(f"k-means needs at least k={k} >= 1 points, got {len(x)}")
     rng = np.random.default_rng(seed)
-    centers = _kmeans_pp_init(x, k, rng)
+    x_sq = np.einsum("nd,nd->n", x, x)
+    centers = _kmeans_pp_init(x, k, rng, x_sq)
     labels = np.full(len(x), -1, dtype=np.int64)
     for _ in range(iterations):
-        d2 = squared_distances(x, centers)
+        d2 = squared_distances(x, centers, x_sq)
         new_labels = np.argmin(d2, axis=1)
         if np.array_equal(new_labels, labels):
             break
