@@ -185,3 +185,20 @@ def test_example_pairs_show_each_role(sara_run: Path):
     present = {r for r in data.scores.role if r in ("tree", "loop", "anchor", "weak")}
     assert present <= roles
     assert all(data.scores.role[e] == "rejected" for e in rejected)
+
+
+def test_pairs_added_after_the_first_round_are_drawn_by_what_added_them(sara_run: Path):
+    from sara.io import records
+
+    data = load_run(sara_run)
+    roles = data.edge_roles()
+    first = {p for p, r in zip(data.scores.pairs, data.scores.role) if r in ("tree", "loop", "anchor", "weak", "rescue")}
+    added = [p for p in data.pairs if p not in first]
+    assert added  # the synthetic run adds pairs for weak views (and may run the pose-guided round)
+    for stage, role in (("support", "support"), ("pose_guided", "pose-guided")):
+        listed = {tuple(sorted(p)) for p in (records.done_info(sara_run, stage) or {}).get("pairs", [])}
+        assert all(roles[p] == role for p in listed)
+    assert {roles[p] for p in added} <= {"support", "pose-guided", "repair"}
+    assert "support" in {roles[p] for p in added}
+    text = write_report(sara_run, sara_run / "roles.html").read_text(encoding="utf-8")
+    assert 'data-role="support"' in text

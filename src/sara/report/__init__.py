@@ -23,12 +23,17 @@ import numpy as np
 from .. import colmap
 from ..colmap import model
 from ..export import recorded_images_root
-from ..io import read_json
+from ..io import read_json, records
 from ..io.pairs import Pair, read_pairs
 from ..io.scores import read_scores_csv
 
 SELECTED_ROLES = ("tree", "loop", "anchor", "weak", "rescue")
-ALL_ROLES = SELECTED_ROLES + ("repair", "selected", "unselected", "rejected")
+#: SARA's pairs matched after the first round: for weakly matched views before mapping, the
+#: pose-guided round, and repairs of views left out of the model
+ADDED_ROLES = ("support", "pose-guided", "repair")
+ALL_ROLES = SELECTED_ROLES + ADDED_ROLES + ("selected", "unselected", "rejected")
+#: the records that list the pairs of each added role (the rest are repairs)
+_ADDED_RECORDS = {"support": "support", "pose-guided": "pose_guided"}
 
 
 @dataclass(frozen=True)
@@ -57,6 +62,7 @@ class RunData:
     model_sizes: list[int] = field(default_factory=list)  # registered images per model
     metrics: dict[str, Any] | None = None
     images_root: Path | None = None
+    added: dict[Pair, str] = field(default_factory=dict)  # SARA: pair matched after the first round -> role
 
     @property
     def config(self) -> dict[str, Any]:
@@ -76,15 +82,15 @@ class RunData:
         return n * (n - 1) // 2
 
     def edge_roles(self) -> dict[Pair, str]:
-        """Role of every pair to draw: the scored candidates' roles; matched pairs outside them are
-        `repair` in a SARA run (added after the first round: for weakly matched views before
-        mapping, then by the repair and pose-guided rounds) and `selected` in any other run."""
+        """Role of every pair to draw: the scored candidates' roles; matched pairs outside them are,
+        in a SARA run, `support` (for weakly matched views, before mapping), `pose-guided` or
+        `repair` (views left out of the model), and `selected` in any other run."""
         roles: dict[Pair, str] = {}
         if self.scores is not None:
             roles.update(zip(self.scores.pairs, self.scores.role))
         for pair in self.pairs:
             if roles.get(pair) not in SELECTED_ROLES:
-                roles[pair] = "repair" if self.scores is not None else "selected"
+                roles[pair] = self.added.get(pair, "repair") if self.scores is not None else "selected"
         return roles
 
 
@@ -126,9 +132,21 @@ def load_run(out_dir: Path) -> RunData:
         data.model = model.read_model(models[0])
         data.model_sizes = [len(data.model.names)] + [colmap.num_registered(colmap.read_model(m)) for m in models[1:]]
     _load_metrics(data)
+    data.added = _added_roles(out_dir)
     data.names = sorted(set(data.names) | _names_in(data))
     data.images_root = _images_root(data)
     return data
+
+
+def _added_roles(out_dir: Path) -> dict[Pair, str]:
+    """Pairs that SARA's records list as added for weak views or by the pose-guided round."""
+    out: dict[Pair, str] = {}
+    for role, stage in _ADDED_RECORDS.items():
+        record = records.read_record(out_dir, stage) or {}
+        for pair in record.get("info", {}).get("pairs", []) if record.get("done") is True else []:
+            if isinstance(pair, (list, tuple)) and len(pair) == 2:
+                out[_canonical(str(pair[0]), str(pair[1]))] = role
+    return out
 
 
 def _names_in(data: RunData) -> set[str]:

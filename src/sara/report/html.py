@@ -30,7 +30,7 @@ import numpy as np
 
 from ..io import write_text_atomic
 from ..io.pairs import Pair
-from . import SELECTED_ROLES, RunData, load_run
+from . import ADDED_ROLES, SELECTED_ROLES, RunData, load_run
 
 logger = logging.getLogger(__name__)
 
@@ -42,12 +42,15 @@ ROLE_STYLE: dict[str, tuple[str, float, float, str]] = {
     "anchor": ("#e08a00", 2.0, 0.9, ""),
     "weak": ("#8e44ad", 2.0, 0.9, ""),
     "rescue": ("#8b5a2b", 2.0, 0.9, "6 3"),
+    "support": ("#00897b", 2.0, 0.9, "6 3"),
+    "pose-guided": ("#f06292", 2.0, 0.9, "6 3"),
     "repair": ("#c2185b", 2.0, 0.9, "6 3"),
     "selected": ("#1f4e9c", 2.0, 0.9, ""),
     "unselected": ("#8a96a3", 0.8, 0.35, ""),
     "rejected": ("#d62728", 0.8, 0.22, "2 3"),
 }
-ROLE_ORDER = ("rejected", "unselected", "repair", "rescue", "weak", "anchor", "loop", "tree", "selected")
+ROLE_ORDER = ("rejected", "unselected", "repair", "pose-guided", "support", "rescue", "weak", "anchor", "loop", "tree",
+              "selected")
 MAX_POINTS_DRAWN = 6000
 MAX_FAINT_EDGES = 20000
 THUMB_PX = 200
@@ -237,7 +240,7 @@ def node_positions(data: RunData) -> tuple[np.ndarray, np.ndarray, str]:
         _park_unregistered(pos, registered)
         return pos, registered, "camera positions seen from above"
     roles = data.edge_roles()
-    chosen = [(index[a], index[b]) for (a, b), r in roles.items() if r in SELECTED_ROLES + ("selected", "repair")]
+    chosen = [(index[a], index[b]) for (a, b), r in roles.items() if r in SELECTED_ROLES + ADDED_ROLES + ("selected",)]
     pos = graph_layout(len(data.names), np.array(chosen, dtype=np.int64).reshape(-1, 2))
     return pos, registered, "a force-directed layout of the selected graph (no model)"
 
