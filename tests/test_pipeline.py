@@ -120,3 +120,25 @@ def test_weakly_matched_views_get_pairs_before_the_first_mapping(tmp_path: Path,
     assert (out / "pairs.txt").read_text().splitlines() == lines
     assert again.stages["pairs"]["num_pairs"] == pairs["num_pairs"]
     assert again.metrics["auc"] == report.metrics["auc"]
+
+
+def test_matching_the_same_pairs_again_gives_the_same_verified_matches(tmp_path: Path, synthetic_scene):
+    """COLMAP's verification draws its RANSAC samples from a fixed seed: without one, a pair's inlier
+    count depended on the thread that verified it (identical runs differed by 1-3 inliers)."""
+    import shutil
+    import sqlite3
+
+    from sara.pipeline import match_pairs
+
+    images, _ = synthetic_scene
+    conf = make_config("sift-offline", {"pairs.method": "exhaustive"})
+    first = tmp_path / "first"
+    run(conf, images, first, progress=False, stop_after="pairs")
+    counts = []
+    for k in range(3):
+        out = Path(shutil.copytree(first, tmp_path / f"again{k}"))
+        db = match_pairs(conf, out / "pairs.txt", out / "features-sift.h5", out, progress=False)
+        with sqlite3.connect(db) as con:
+            counts.append(con.execute("SELECT pair_id, rows FROM two_view_geometries ORDER BY pair_id").fetchall())
+    assert len(counts[0]) == 45
+    assert counts[1] == counts[0] and counts[2] == counts[0]
