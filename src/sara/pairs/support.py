@@ -39,9 +39,8 @@ def support_pairs(scores_csv: Path, pairs: list[Pair], support: dict[str, int], 
     `support` is below `min_inliers`, weakest views first, at most `room` pairs in all; sorted.
 
     A pair added for one view counts for the other view of the pair too. Weakest means the lowest
-    `order` (default: `support`): the caller passes a measure that does not vary between runs
-    (matches before verification), since verified inlier counts vary by a few (COLMAP's
-    multi-threaded RANSAC) and an order by them changed the pairs from run to run.
+    `order` (default: `support`); the source passes the views' matches before verification, which
+    were repeatable when the verified counts were not (COLMAP's RANSAC without a seed).
     """
     rank = order if order is not None else support
     weak = sorted((v for v, s in support.items() if s < min_inliers), key=lambda v: (rank.get(v, 0), v))
