@@ -175,30 +175,25 @@ def verified_graph(db_path: Path, min_num_inliers: int) -> tuple[int, int, list[
 def verified_inliers(db_path: Path, min_num_inliers: int) -> dict[tuple[str, str], int]:
     """Verified inlier matches of each pair with at least `min_num_inliers`, keyed by the two image
     names in sorted order (read with SQLite: the file is not touched)."""
-    (rows, images) = _query(db_path, ("SELECT pair_id, rows FROM two_view_geometries WHERE rows >= ?",
-                                      (int(min_num_inliers),)),
-                            ("SELECT image_id, name FROM images", ()))
-    name = {int(i): n for i, n in images}
-    out: dict[tuple[str, str], int] = {}
-    for pair_id, count in rows:
-        i, j = pycolmap.pair_id_to_image_pair(int(pair_id))
-        if int(i) in name and int(j) in name:
-            a, b = sorted((name[int(i)], name[int(j)]))
-            out[(a, b)] = int(count)
-    return out
+    return _counts_by_pair(db_path, "SELECT pair_id, rows FROM two_view_geometries WHERE rows >= ?",
+                           (int(min_num_inliers),))
 
 
 def match_counts(db_path: Path) -> dict[tuple[str, str], int]:
     """Matches (before geometric verification) of each matched pair, keyed by the two image names
-    in sorted order. Unlike the verified inlier counts they do not vary between runs."""
-    (rows, images) = _query(db_path, ("SELECT pair_id, rows FROM matches", ()),
-                            ("SELECT image_id, name FROM images", ()))
+    in sorted order (read with SQLite)."""
+    return _counts_by_pair(db_path, "SELECT pair_id, rows FROM matches", ())
+
+
+def _counts_by_pair(db_path: Path, sql: str, args: tuple) -> dict[tuple[str, str], int]:
+    """(pair_id, count) rows of `sql` keyed by the pair's two image names in sorted order."""
+    (rows, images) = _query(db_path, (sql, args), ("SELECT image_id, name FROM images", ()))
     name = {int(i): n for i, n in images}
     out: dict[tuple[str, str], int] = {}
     for pair_id, count in rows:
-        i, j = pycolmap.pair_id_to_image_pair(int(pair_id))
-        if int(i) in name and int(j) in name:
-            a, b = sorted((name[int(i)], name[int(j)]))
+        i, j = (int(k) for k in pycolmap.pair_id_to_image_pair(int(pair_id)))
+        if i in name and j in name:
+            a, b = sorted((name[i], name[j]))
             out[(a, b)] = int(count or 0)
     return out
 

@@ -201,9 +201,7 @@ def before_mapping(ctx: PairContext, pairs: list[Pair], db_path: Path) -> list[P
                        "per_view": conf.support_pairs_per_view})
     record = records.read_record(ctx.out_dir, SUPPORT_STAGE)
     if record and record.get("done") is True and record.get("key") == key:
-        done = [(a, b) for a, b in record.get("info", {}).get("pairs", [])]
-        matched = {tuple(sorted(p)) for p in pairs}
-        return [] if all(tuple(sorted(p)) in matched for p in done) else done
+        return _still_to_match([(a, b) for a, b in record.get("info", {}).get("pairs", [])], pairs)
     support = view_inliers(ctx.names, pairs, colmap.verified_inliers(db_path, ctx.conf.match.min_num_inliers))
     graph = ctx.conf.graph
     cap = graph.densify_cap(len(ctx.names)) if graph.densify else graph.pair_cap(len(ctx.names))
@@ -219,6 +217,13 @@ def before_mapping(ctx: PairContext, pairs: list[Pair], db_path: Path) -> list[P
         logger.info("%d views have fewer than %d verified inlier matches in all: matching %d more pairs before "
                     "mapping", weak, conf.min_view_inliers, len(extra))
     return extra
+
+
+def _still_to_match(chosen: list[Pair], pairs: list[Pair]) -> list[Pair]:
+    """Pairs a round chose before: none once they are all matched, all of them again when a run
+    stopped before they were."""
+    matched = {tuple(sorted(p)) for p in pairs}
+    return [] if all(tuple(sorted(p)) in matched for p in chosen) else chosen
 
 
 def _pairs_key(pairs: list[Pair]) -> str:
@@ -264,9 +269,8 @@ def pose_guided_round(ctx: PairContext, pairs: list[Pair], model_dir: Path) -> l
         return []
     key = pose_guided.selection_key(_first_round(ctx.out_dir / SCORES_NAME), graph)
     done = pose_guided.recorded_pairs(ctx.out_dir, key)
-    if done is not None:  # chosen before: [] once matched, the same pairs again after an interruption
-        matched = {tuple(sorted(p)) for p in pairs}
-        return [] if all(p in matched for p in done) else done
+    if done is not None:
+        return _still_to_match(done, pairs)
     extra, info = pose_guided.select_extra(ctx, pairs, model_dir)
     pose_guided.mark_chosen(ctx.out_dir, key, extra, info)
     if extra:

@@ -26,6 +26,8 @@ from ..export import recorded_images_root
 from ..io import read_json, records
 from ..io.pairs import Pair, read_pairs
 from ..io.scores import read_scores_csv
+from ..pairs.pose_guided import STAGE as POSE_GUIDED_STAGE
+from ..pairs.sara_source import SUPPORT_STAGE
 
 SELECTED_ROLES = ("tree", "loop", "anchor", "weak", "rescue")
 #: SARA's pairs matched after the first round: for weakly matched views before mapping, the
@@ -33,7 +35,7 @@ SELECTED_ROLES = ("tree", "loop", "anchor", "weak", "rescue")
 ADDED_ROLES = ("support", "pose-guided", "repair")
 ALL_ROLES = SELECTED_ROLES + ADDED_ROLES + ("selected", "unselected", "rejected")
 #: the records that list the pairs of each added role (the rest are repairs)
-_ADDED_RECORDS = {"support": "support", "pose-guided": "pose_guided"}
+_ADDED_RECORDS = {"support": SUPPORT_STAGE, "pose-guided": POSE_GUIDED_STAGE}
 
 
 @dataclass(frozen=True)
