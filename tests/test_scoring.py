@@ -12,6 +12,7 @@ import pycolmap
 import pytest
 from model_utils import PinholeCamera, look_at, rotation_about_axis
 
+import sara.scoring.scorer as scorer_module
 from sara.config import ScoreConfig
 from sara.io.h5 import Features, write_features
 from sara.scoring import (
@@ -258,6 +259,26 @@ def test_unrelated_images_have_few_inliers():
     score = score_pair(pair.view0, pair.view1, ScoreConfig())
     assert score.num_inliers < ScoreConfig().min_inliers
     assert (score.accepted, score.reason) == (False, "few_inliers")
+    assert np.isnan(score.parallax_deg) and score.weight == 0.0  # not measured
+
+
+@pytest.mark.parametrize("conf, reason", [(ScoreConfig(min_inliers=41), "few_inliers"),
+                                          (ScoreConfig(min_overlap=0.5), "low_overlap")])
+def test_a_pair_that_fails_before_the_parallax_test_is_not_triangulated(monkeypatch, conf, reason):
+    """The parallax test is the scorer's dearest step, and no later stage reads the parallax of a
+    pair rejected for its inliers or overlap: such a pair skips it, and everything else is kept."""
+    pair = synthetic_pair(look_at(np.array([3.0, -8.0, 1.0]), np.zeros(3)))
+    measured = score_pair(pair.view0, pair.view1, ScoreConfig())
+
+    def fail(*args, **kwargs):
+        raise AssertionError("the parallax of a rejected pair was measured")
+
+    monkeypatch.setattr(scorer_module, "inlier_parallax_deg", fail)
+    score = score_pair(pair.view0, pair.view1, conf)
+    assert (score.accepted, score.reason) == (False, reason)
+    assert (score.num_matches, score.num_inliers, score.overlap) == (
+        measured.num_matches, measured.num_inliers, measured.overlap)
+    assert np.isnan(score.parallax_deg) and score.weight == 0.0
 
 
 def test_too_few_matches_give_no_model():

@@ -26,8 +26,9 @@ class PairScores:
         num_matches: (P,) int64 mutual nearest neighbours used (at most ``num_matches``).
         num_inliers: (P,) int64 RANSAC inliers.
         overlap: (P,) float64 ``num_inliers / sqrt(N0 N1)``.
-        parallax_deg: (P,) float64 median triangulation angle, degrees.
-        weight: (P,) float64 ``w``.
+        parallax_deg: (P,) float64 median triangulation angle, degrees; NaN where not measured
+            (the pair failed a test before the parallax one).
+        weight: (P,) float64 ``w``; 0 where the parallax was not measured.
         accepted: (P,) bool.
         reason: P strings, why it was rejected (see sara.scoring.REASONS), "" when accepted.
     """

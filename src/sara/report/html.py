@@ -256,12 +256,17 @@ def _park_unregistered(pos: np.ndarray, registered: np.ndarray) -> None:
     pos[left_out] = np.stack([np.full(len(left_out), hi[0] + 0.25 * span), ys], 1)
 
 
+def _degrees(value: float) -> str:
+    """An angle for a caption; a parallax the scorer did not measure says so."""
+    return f"{value:.2f}\u00b0" if np.isfinite(value) else "not measured"
+
+
 def _edge_title(pair: Pair, role: str, data: RunData, score_index: dict[Pair, int]) -> str:
     text = f"{pair[0]} \u2013 {pair[1]}: {role}"
     s = data.scores
     if s is not None and pair in score_index:
         e = score_index[pair]
-        text += (f"; O={s.overlap[e]:.4f}, P={s.parallax_deg[e]:.2f}\u00b0, w={s.weight[e]:.4f}, "
+        text += (f"; O={s.overlap[e]:.4f}, P={_degrees(s.parallax_deg[e])}, w={s.weight[e]:.4f}, "
                  f"{s.num_inliers[e]} inliers" + (f", {s.reason[e]}" if s.reason[e] else ""))
     if pair in data.verified:
         text += f"; {data.verified[pair]} verified matches"
@@ -575,7 +580,7 @@ def _thumbnails_section(data: RunData, thumbs: Thumbnails) -> str:
             a, b = s.pairs[e]
             label = s.role[e] if s.accepted[e] else f"rejected: {s.reason[e] or 'not accepted'}"
             cards.append(f"<figure class=\"pair\"><div>{thumbs.img(a)}{thumbs.img(b)}</div><figcaption>"
-                         f"<b>{_esc(label)}</b> &middot; O={s.overlap[e]:.4f} &middot; P={s.parallax_deg[e]:.2f}&deg; "
+                         f"<b>{_esc(label)}</b> &middot; O={s.overlap[e]:.4f} &middot; P={_degrees(s.parallax_deg[e])} "
                          f"&middot; w={s.weight[e]:.4f} &middot; {s.num_inliers[e]} inliers<br>{_esc(a)} &ndash; "
                          f"{_esc(b)}</figcaption></figure>")
         body += f"<h3>{title}</h3><div class=\"pairs\">{''.join(cards)}</div>"

@@ -98,8 +98,8 @@ class PairScore:
     num_matches: int
     num_inliers: int
     overlap: float
-    parallax_deg: float
-    weight: float
+    parallax_deg: float  # NaN when not measured: the pair failed an earlier test
+    weight: float  # 0 when the parallax was not measured
     accepted: bool
     reason: str  # one of REASONS, "" when accepted
 
@@ -130,7 +130,10 @@ def score_pair(view0: ViewFeatures, view1: ViewFeatures, conf: ScoreConfig, *, s
 
     ``num_inliers`` counts the RANSAC inliers; ``parallax_deg`` is :func:`inlier_parallax_deg`;
     ``overlap`` is ``num_inliers / sqrt(N0 * N1)`` with N the keypoints used (at most M per image).
-    The same views, settings and seed always give the same score.
+    A pair that fails a test before the parallax one (no model, too few inliers, too little
+    overlap) is not triangulated: nothing uses its parallax, which is NaN ("not measured"), and its
+    weight is 0. On low-texture scenes most candidates fail so, and the parallax test was 40% of
+    a pair's cost. The same views, settings and seed always give the same score.
     """
     if view0.unit and view1.unit:  # normalised once per view, not once per pair
         matches, _ = mutual_matches_from_similarity(view0.descriptors @ view1.descriptors.T, conf.num_matches)
@@ -139,19 +142,22 @@ def score_pair(view0: ViewFeatures, view1: ViewFeatures, conf: ScoreConfig, *, s
     x0, x1 = view0.points_norm[matches[:, 0]], view1.points_norm[matches[:, 1]]
     max_error = conf.ransac_max_error_px * 2.0 / (view0.focal_px + view1.focal_px)
     pose = estimate_relative_pose(x0, x1, max_error=max_error, iterations=conf.ransac_iterations, seed=seed)
-    num_inliers, parallax_deg = 0, 0.0
-    if pose is not None:
-        num_inliers = int(pose.inliers.sum())
+    num_inliers = 0 if pose is None else int(pose.inliers.sum())
+    denom = math.sqrt(view0.num_keypoints * view1.num_keypoints)
+    overlap = num_inliers / denom if denom > 0 else 0.0
+    reason = rejection_reason(pose is not None, num_inliers, overlap, math.inf, conf)
+    if reason:
+        parallax_deg, weight = math.nan, 0.0
+    else:
         parallax_deg = inlier_parallax_deg(
             pose, x0[pose.inliers], x1[pose.inliers], max_error=max_error,
             iterations=conf.ransac_iterations, seed=seed,
         )
-    denom = math.sqrt(view0.num_keypoints * view1.num_keypoints)
-    overlap = num_inliers / denom if denom > 0 else 0.0
-    reason = rejection_reason(pose is not None, num_inliers, overlap, parallax_deg, conf)
+        reason = rejection_reason(True, num_inliers, overlap, parallax_deg, conf)
+        weight = pair_weight(overlap, parallax_deg, conf)
     return PairScore(
         num_matches=len(matches), num_inliers=num_inliers, overlap=overlap, parallax_deg=parallax_deg,
-        weight=pair_weight(overlap, parallax_deg, conf), accepted=reason == "", reason=reason,
+        weight=weight, accepted=reason == "", reason=reason,
     )
 
 
