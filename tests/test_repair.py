@@ -1,5 +1,8 @@
 from pathlib import Path
 
+import pytest
+
+from sara.config import MapConfig
 from sara.pairs.repair import left_out_views, repair_pairs
 
 
@@ -66,3 +69,33 @@ def test_a_repair_that_leaves_most_of_its_views_out_is_not_repeated(tmp_path: Pa
     (tmp_path / "scores.csv").write_text(header + "".join(f"{a},{b},50,40,0.1,5,0.1,true,,tree\n" for a, b in pairs[:3]))
     registered.add("d")
     assert sara_source.after_mapping(ctx, pairs + first + second, model) == [("c", "e")]
+
+
+class _Model:
+    def __init__(self, views: int) -> None:
+        self.views = views
+
+    def num_reg_images(self) -> int:
+        return self.views
+
+
+@pytest.mark.parametrize("continued, scratch_runs", [(14, False), (10, True), (20, False)])
+def test_a_continued_model_is_mapped_anew_only_when_it_gained_no_view(tmp_path: Path, monkeypatch, continued,
+                                                                      scratch_runs):
+    """A repair round continues the model of 10 views; 20 views are joined by verified pairs. Mapping
+    from scratch too (a whole second mapping) only pays where continuing registered nothing more."""
+    from sara import mapping
+
+    maps = []
+
+    def fake_map(conf, db_path, images_root, tmp, seed, progress, input_model=None):
+        maps.append("continued" if input_model is not None else "scratch")
+        return {0: _Model(continued if input_model is not None else 12)}, 20, 0.1
+
+    monkeypatch.setattr(mapping, "_map", fake_map)
+    monkeypatch.setattr(mapping.colmap_refine, "triangulate_new_matches", lambda *args, **kwargs: None)
+    monkeypatch.setattr(mapping.colmap, "read_model", lambda path: _Model(10))
+    monkeypatch.setattr(mapping.colmap, "verified_graph", lambda db_path, min_num_inliers: (30, 20, [20], 100))
+    recs, _, _ = mapping._extend(MapConfig(), tmp_path / "db", tmp_path, tmp_path, 0, False, tmp_path / "in", 15)
+    assert maps == (["continued", "scratch"] if scratch_runs else ["continued"])
+    assert recs[0].num_reg_images() == (12 if scratch_runs else continued)  # the larger model is kept

@@ -102,30 +102,37 @@ def _map(conf: MapConfig, db_path: Path, images_root: Path, tmp: Path, seed: int
 
 def _extend(conf: MapConfig, db_path: Path, images_root: Path, tmp: Path, seed: int, progress: bool,
             input_model: Path, min_num_inliers: int) -> tuple[dict, int, float]:
-    """Continue from `input_model`; when that leaves out views that the verified pairs join to the
-    main model, map from scratch too and keep the result whose largest model holds more views
-    (the continued one on a tie).
+    """Continue from `input_model`. When that registers none of the views it lacked although
+    verified pairs join them to it, map from scratch too and keep the result whose largest model
+    holds more views (the continued one on a tie).
 
     The model is first re-triangulated with the new matches (poses fixed): continuing from it as
     written, the mapper found too few 3D points on the features the left-out views share with it
     (templeSparseRing: 13 of 16 views kept; 16 after re-triangulating, in 0.2 s against 0.7 s
     for mapping anew). Mapping from scratch stays the fallback because the mapper cannot revisit
-    its earlier choices.
+    its earlier choices, but only where continuing made no progress: a continued model that gained
+    views was never beaten by mapping anew in the stand-ins of docs/ACCURACY.md (15.2), and that
+    second whole mapping is what made repair rounds slow on large low-texture scenes.
     """
     tic = time.perf_counter()
     (tmp / "extended").mkdir()
     start = tmp / "input"
     colmap_refine.triangulate_new_matches(input_model, db_path, images_root, start, num_threads=conf.num_threads,
                                           seed=seed)
+    before = colmap.num_registered(colmap.read_model(start))
     recs, num_images, _ = _map(conf, db_path, images_root, tmp / "extended", seed, progress, start)
     reachable = max(colmap.verified_graph(db_path, min_num_inliers)[2], default=0)
     extended = max((r.num_reg_images() for r in recs.values()), default=0)
     if extended < reachable:
-        logger.info("map: continuing from the model registered %d of the %d views joined by verified pairs; "
-                    "mapping from scratch too", extended, reachable)
+        logger.info("map: continuing from the model of %d views registered %d of the %d views joined by verified "
+                    "pairs%s", before, extended, reachable, "" if extended > before else "; mapping from scratch too")
+    if extended < reachable and extended <= before:
         (tmp / "scratch").mkdir()
-        scratch_recs, _, _ = _map(conf, db_path, images_root, tmp / "scratch", seed, progress)
-        if max((r.num_reg_images() for r in scratch_recs.values()), default=0) > extended:
+        scratch_recs, _, scratch_s = _map(conf, db_path, images_root, tmp / "scratch", seed, progress)
+        from_scratch = max((r.num_reg_images() for r in scratch_recs.values()), default=0)
+        logger.info("map: from scratch %d views in %.1f s against %d continued: keeping the %s model",
+                    from_scratch, scratch_s, extended, "new" if from_scratch > extended else "continued")
+        if from_scratch > extended:
             recs = scratch_recs
     return recs, num_images, time.perf_counter() - tic
 
