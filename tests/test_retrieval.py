@@ -287,3 +287,23 @@ def test_sum_by_label_matches_unbuffered_add() -> None:
     sums, counts = retrieval.vlad.sum_by_label(x, labels, 6)
     np.testing.assert_allclose(sums, expected, atol=1e-5)
     assert counts.tolist() == np.bincount(labels, minlength=6).tolist() and counts[4] == 0
+
+
+@pytest.mark.parametrize("layout", ["rows", "transposed"])
+def test_sum_by_label_gives_the_sums_of_the_sorted_rows_bit_for_bit(layout) -> None:
+    """The per-label gather gives exactly the sums of numpy's reduceat over the rows sorted by
+    label (the codebooks of earlier runs), whether the descriptors are stored row by row or
+    transposed as hloc's files hold them."""
+    rng = np.random.default_rng(11)
+    x = rng.random((5000, 128), dtype=np.float32)
+    if layout == "transposed":
+        x = np.ascontiguousarray(x.T).T
+        assert not x.flags.c_contiguous
+    labels = rng.integers(0, 64, len(x))
+    labels[labels == 7] = 8  # an empty label
+    counts = np.bincount(labels, minlength=64)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])[counts > 0]
+    expected = np.zeros((64, 128), np.float32)
+    expected[counts > 0] = np.add.reduceat(x[np.argsort(labels, kind="stable")], starts, axis=0)
+    sums, _ = retrieval.vlad.sum_by_label(x, labels, 64)
+    assert sums.tobytes() == expected.tobytes()
