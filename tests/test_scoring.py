@@ -415,3 +415,12 @@ def test_score_pairs_reports_bad_input(tmp_path):
         score_pairs([("a.png", "a.png")], features_path, db_path, ScoreConfig(), progress=False)
     with pytest.raises(ValueError, match="not in the database"):
         score_pairs([("a.png", "zz.png")], features_path, db_path, ScoreConfig(), progress=False)
+
+
+def test_shards_give_each_worker_several_but_not_tiny_ones():
+    from sara.scoring.scorer import MIN_SHARD_PAIRS, SHARD_PAIRS, shard_pairs
+
+    assert shard_pairs(1356, 2) == 170  # 8 shards on 2 workers, not 512 + 512 + 332
+    assert shard_pairs(100_000, 2) == SHARD_PAIRS
+    assert shard_pairs(120, 2) == MIN_SHARD_PAIRS  # fewer than two shards: scored in-process
+    assert shard_pairs(10, 2, most=4) == 4  # a smaller maximum is kept (the tests' small shards)

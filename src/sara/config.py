@@ -302,7 +302,8 @@ class ExecuteConfig:
     executor: str = "auto"  # auto (serial for 1 worker, else processes) | serial | processes | ray
     workers: int = 0  # parallel workers; 0: one per CPU core
     ray_address: str = ""  # with executor=ray: a cluster address or "auto"; empty starts a local one
-    shard_size: int = 512  # pairs per shard of parallel scoring (fewer than two shards: scored in-process)
+    shard_size: int = 512  # most pairs per shard of parallel scoring (4 shards per worker down to 64 pairs;
+    # fewer than two shards: scored in-process)
 
     def __post_init__(self) -> None:
         validate(self)
