@@ -150,3 +150,27 @@ def test_densify_keeps_the_first_round_and_caps_at_sixty_percent_of_exhaustive()
     assert first_round_cap(11, conf) == 13  # no room kept back: densify adds to the usual selection
     assert conf.densify_cap(11) == 33  # 60% of 55
     assert conf.densify_cap(47) == 8 * 47
+
+
+def test_large_models_predict_only_the_pairs_of_nearby_views(monkeypatch):
+    """Above MAX_ALL_PAIRS the round predicts each view's NEAREST_VIEWS nearest views only: views
+    on a line, all looking along +z except one that looks back; matched pairs stay out."""
+    from sara.pairs import pose_guided as round_
+
+    names = [f"v{i:02d}" for i in range(12)]
+    centers = np.stack([np.arange(12.0), np.zeros(12), np.zeros(12)], axis=1)
+    axes = np.tile([0.0, 0.0, 1.0], (12, 1))
+    axes[5] = [0.0, 0.0, -1.0]  # looks away from all the others
+    matched = [("v00", "v01")]
+    everything = round_.candidate_pairs(names, matched, centers, axes)
+    assert len(everything) == 66 - 1  # below the limit: every unmatched pair
+
+    monkeypatch.setattr(round_, "MAX_ALL_PAIRS", 10)
+    monkeypatch.setattr(round_, "NEAREST_VIEWS", 2)
+    near = {tuple(p) for p in round_.candidate_pairs(names, matched, centers, axes).tolist()}
+    assert (0, 1) not in near and (0, 2) in near  # v00's two nearest: v01 (matched) and v02
+    assert all(5 not in p for p in near)  # v05 faces the other way: no pair with it
+    assert (4, 6) in near and (3, 4) in near and (0, 3) not in near
+    assert all(a < b for a, b in near)
+    with pytest.raises(ValueError, match="centres"):
+        round_.candidate_pairs(names, matched)

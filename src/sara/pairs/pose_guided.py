@@ -46,12 +46,52 @@ def budget(ctx: PairContext, num_matched: int, num_registered: int) -> int:
     return max(0, min(own, cap - num_matched))
 
 
-def candidate_pairs(names: list[str], matched: list[Pair]) -> np.ndarray:
-    """(K, 2) int64 rows of `names`: every pair of registered views not matched yet."""
+#: up to this many unmatched pairs of registered views the round predicts every one of them; above
+#: it (about 200 views), each view's NEAREST_VIEWS nearest views only. Predicting a pair costs about
+#: 0.5 ms: all 65,703 pairs of 363 views would take half a minute, 50 million (10,000 views) days.
+MAX_ALL_PAIRS = 20_000
+#: views nearest by camera centre (optical axes within 90 degrees) whose pairs the round predicts
+#: on large models. On bm-moldGoldCape's model 32 already give the same choice as all 6,795 pairs
+#: (24: 107 of the 114 pairs; docs/ACCURACY.md 15.8).
+NEAREST_VIEWS = 48
+
+
+def candidate_pairs(names: list[str], matched: list[Pair], centers: np.ndarray | None = None,
+                    axes: np.ndarray | None = None) -> np.ndarray:
+    """(K, 2) int64 rows of `names`, i < j: the pairs of registered views not matched yet; all of
+    them up to MAX_ALL_PAIRS, else those among each view's NEAREST_VIEWS nearest views (`centers`,
+    `axes`: (N, 3) camera centres and optical axes, required then)."""
     index = {n: i for i, n in enumerate(names)}
     done = {tuple(sorted((index[a], index[b]))) for a, b in matched if a in index and b in index}
-    return np.array([p for p in combinations(range(len(names)), 2) if p not in done],
-                    dtype=np.int64).reshape(-1, 2)
+    num = len(names)
+    if num * (num - 1) // 2 - len(done) <= MAX_ALL_PAIRS:
+        return np.array([p for p in combinations(range(num), 2) if p not in done],
+                        dtype=np.int64).reshape(-1, 2)
+    if centers is None or axes is None:
+        raise ValueError(f"{num} views: the nearest views need the camera centres and axes")
+    near = nearest_views(np.asarray(centers, np.float64), np.asarray(axes, np.float64), NEAREST_VIEWS)
+    rows = np.sort(near, axis=1)
+    rows = np.unique(rows[rows[:, 0] != rows[:, 1]], axis=0)
+    keep = np.array([(int(a), int(b)) not in done for a, b in rows], dtype=bool)
+    return rows[keep].reshape(-1, 2).astype(np.int64)
+
+
+def nearest_views(centers: np.ndarray, axes: np.ndarray, k: int, block: int = 1024) -> np.ndarray:
+    """(M, 2) int64 (view, other): each view's `k` nearest other views by centre distance among
+    those whose optical axes are within 90 degrees of its own (ties: lower index), by blocks of
+    rows so that memory stays O(block * N)."""
+    num = len(centers)
+    out = []
+    for start in range(0, num, block):
+        rows = np.arange(start, min(start + block, num))
+        dist = ((centers[rows, None, :] - centers[None, :, :]) ** 2).sum(-1)
+        dist[axes[rows] @ axes.T < 0] = np.inf
+        dist[np.arange(len(rows)), rows] = np.inf
+        order = np.argsort(dist, axis=1, kind="stable")[:, :k]
+        for r, view in enumerate(rows):
+            others = order[r][np.isfinite(dist[r, order[r]])]
+            out.append(np.stack([np.full(len(others), view), others], axis=1))
+    return np.concatenate(out).astype(np.int64) if out else np.zeros((0, 2), np.int64)
 
 
 def select_extra(ctx: PairContext, pairs: list[Pair], model_dir: Path) -> tuple[list[Pair], dict[str, Any]]:
@@ -60,7 +100,7 @@ def select_extra(ctx: PairContext, pairs: list[Pair], model_dir: Path) -> tuple[
     geom = colmap_refine.read_geometry(model_dir)
     graph = ctx.conf.graph
     limit = budget(ctx, len(pairs), len(geom.names))
-    candidates = candidate_pairs(geom.names, pairs)
+    candidates = candidate_pairs(geom.names, pairs, geom.centers, geom.rotations[:, 2, :])
     if limit <= 0 or len(candidates) == 0:
         return [], {"budget": limit, "num_candidates": len(candidates)}
     cov = pose_guided.covisibility(geom, candidates, max_view_angle_deg=graph.pose_guided_max_view_angle_deg)
