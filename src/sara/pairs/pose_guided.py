@@ -70,10 +70,9 @@ def candidate_pairs(names: list[str], matched: list[Pair], centers: np.ndarray |
     if centers is None or axes is None:
         raise ValueError(f"{num} views: the nearest views need the camera centres and axes")
     near = nearest_views(np.asarray(centers, np.float64), np.asarray(axes, np.float64), NEAREST_VIEWS)
-    rows = np.sort(near, axis=1)
-    rows = np.unique(rows[rows[:, 0] != rows[:, 1]], axis=0)
+    rows = np.unique(np.sort(near, axis=1), axis=0)  # never a view with itself
     keep = np.array([(int(a), int(b)) not in done for a, b in rows], dtype=bool)
-    return rows[keep].reshape(-1, 2).astype(np.int64)
+    return rows[keep].reshape(-1, 2)
 
 
 def nearest_views(centers: np.ndarray, axes: np.ndarray, k: int, block: int = 1024) -> np.ndarray:

@@ -64,12 +64,10 @@ def sum_by_label(x: np.ndarray, labels: np.ndarray, k: int) -> tuple[np.ndarray,
         order = np.argsort(labels, kind="stable")
         ends = np.cumsum(counts)
         # (D, rows) contiguous: a column gather when x is stored transposed (hloc's descriptors are)
-        columns = x.T if x.T.flags.c_contiguous else None
-        rows_first = np.ascontiguousarray(x) if columns is None else None
+        transposed = x.T.flags.c_contiguous
         for label in np.flatnonzero(counts):
             index = order[ends[label] - counts[label]:ends[label]]
-            block = (columns.take(index, axis=1) if columns is not None
-                     else np.ascontiguousarray(rows_first.take(index, axis=0).T))
+            block = x.T.take(index, axis=1) if transposed else np.ascontiguousarray(x.take(index, axis=0).T)
             sums[label] = np.add.reduceat(block, [0], axis=1)[:, 0]
     return sums, counts
 
