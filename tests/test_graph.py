@@ -404,6 +404,26 @@ def test_selection_is_deterministic() -> None:
     assert first.stats() == second.stats()
 
 
+def test_the_tree_follows_its_own_weight_and_the_loops_the_pair_weight() -> None:
+    # Every pair weighs the same by `weight` (the b best matches were all inliers), so alone the
+    # tree would be the lowest edge indices: the star around view 0. `tree_weight` (all mutual
+    # matches) makes it the path 0-1-2-3; the loop, ranked by `weight`, is then the lowest index.
+    edges = np.array(list(itertools.combinations(range(4), 2)), dtype=np.int64)
+    weight = np.ones(len(edges))
+    parallax_deg = np.full(len(edges), 20.0)
+    accepted = np.ones(len(edges), dtype=bool)
+    path = np.array([abs(int(i) - int(j)) == 1 for i, j in edges])
+    tree_weight = np.where(path, 3.0, 1.0)
+    conf = GraphConfig(use_anchors=False, use_weak=False, loop_budget_ratio=0.25)  # one loop at N = 4
+    star = select_pairs(4, edges, weight, parallax_deg, accepted, conf)
+    assert {tuple(e) for e in edges[star.role == "tree"].tolist()} == {(0, 1), (0, 2), (0, 3)}
+    chosen = select_pairs(4, edges, weight, parallax_deg, accepted, conf, tree_weight=tree_weight)
+    assert {tuple(e) for e in edges[chosen.role == "tree"].tolist()} == {(0, 1), (1, 2), (2, 3)}
+    assert np.count_nonzero(chosen.role == "loop") == 1
+    with pytest.raises(ValueError, match="tree_weight"):
+        select_pairs(4, edges, weight, parallax_deg, accepted, tree_weight=np.full(len(edges), -1.0))
+
+
 def test_default_budgets_scale_with_images() -> None:
     assert GraphConfig().budgets(20) == {"loop": 10, "anchor": 3, "weak": 5}
     assert GraphConfig().budgets(7) == {"loop": 4, "anchor": 2, "weak": 2}

@@ -28,6 +28,7 @@ from sara.scoring import (
     rotation_focal_scale,
     score_pair,
     score_pairs,
+    tree_weights,
     triangulation_angles_deg,
     write_scores_csv,
 )
@@ -208,6 +209,7 @@ def test_score_pair_with_a_known_pose():
     score = score_pair(pair.view0, pair.view1, conf)
     assert score.num_matches == conf.num_matches
     assert score.num_inliers == pair.num_true  # the 10 wrong matches lie 40 px off
+    assert score.num_inliers_all == pair.num_true  # all mutual matches: none of the others fits
     assert score.overlap == pytest.approx(pair.num_true / 150)
     assert score.parallax_deg == pytest.approx(np.median(pair.true_angles_deg), abs=0.3)
     assert score.parallax_deg > conf.parallax_saturation_deg
@@ -289,6 +291,40 @@ def test_too_few_matches_give_no_model():
     assert (score.accepted, score.reason, score.weight) == (False, "no_model", 0.0)
 
 
+def test_inliers_among_all_matches_rank_pairs_whose_best_matches_all_fit():
+    """Two pairs with 80 and 200 true correspondences among 300 keypoints per image: the b = 50
+    best matches are inliers in both, so their overlap and weight tie; the inliers among all
+    mutual matches do not, and the spanning tree's weight counts those."""
+    conf = ScoreConfig()
+    pose1 = look_at(np.array([3.0, -8.0, 1.0]), np.zeros(3))
+    few, many = (synthetic_pair(pose1, num_true=n, num_wrong=0, num_other=300 - n, seed=3) for n in (80, 200))
+    scores = [score_pair(p.view0, p.view1, conf) for p in (few, many)]
+    assert [s.num_inliers for s in scores] == [conf.num_matches] * 2
+    # every true correspondence, and a few of the random keypoints' matches that fit by chance
+    assert 80 <= scores[0].num_inliers_all <= 85 and 200 <= scores[1].num_inliers_all <= 205
+    table = PairScores.from_scores([("a", "b"), ("a", "c")], scores)
+    assert table.weight[0] == table.weight[1]  # tied
+    tree = tree_weights(table, conf)
+    assert tree[1] > 2 * tree[0]
+    assert tree[0] == pytest.approx(pair_weight(scores[0].num_inliers_all / 300, scores[0].parallax_deg, conf))
+    np.testing.assert_array_equal(tree_weights(table, ScoreConfig(tree_overlap="best")), table.weight)
+
+
+def test_a_scores_file_of_an_earlier_version_reads_without_num_inliers_all(tmp_path):
+    scores = PairScores(
+        name0=["a.jpg"], name1=["b.jpg"], num_matches=np.array([50]), num_inliers=np.array([50]),
+        overlap=np.array([0.05]), parallax_deg=np.array([12.0]), weight=np.array([0.05]),
+        accepted=np.array([True]), reason=[""],
+    )
+    path = write_scores_csv(tmp_path / "s.csv", scores)
+    rows = [line.split(",") for line in path.read_text().splitlines()]
+    column = rows[0].index("num_inliers_all")
+    path.write_text("\n".join(",".join(r[:column] + r[column + 1:]) for r in rows) + "\n")
+    loaded, _ = read_scores_csv(path)
+    np.testing.assert_array_equal(loaded.num_inliers_all, [50])
+    np.testing.assert_array_equal(tree_weights(loaded, ScoreConfig()), loaded.weight)
+
+
 def test_thresholds_and_weight_follow_the_config():
     pair = synthetic_pair(look_at(np.array([3.0, -8.0, 1.0]), np.zeros(3)))
     assert score_pair(pair.view0, pair.view1, ScoreConfig(min_overlap=0.5)).reason == "low_overlap"
@@ -359,7 +395,9 @@ def test_score_pairs_on_files_and_round_trip_through_csv(tmp_path):
     roles = ["tree", "rejected", "rejected", "loop"]
     path = write_scores_csv(tmp_path / "scores.csv", scores, roles)
     header = path.read_text().splitlines()[0]
-    assert header == "name0,name1,num_matches,num_inliers,overlap,parallax_deg,weight,accepted,reason,role"
+    assert header == ("name0,name1,num_matches,num_inliers,num_inliers_all,overlap,parallax_deg,weight,accepted,"
+                      "reason,role")
+    assert np.all(scores.num_inliers_all >= scores.num_inliers)
     loaded, loaded_roles = read_scores_csv(path)
     assert loaded_roles == roles
     for field in dataclasses.fields(PairScores):

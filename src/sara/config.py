@@ -85,6 +85,11 @@ class ScoreConfig:
     min_overlap: float = 0.005  # tau_O
     min_parallax_deg: float = 0.5  # tau_P
     min_inliers: int = 15  # RANSAC on unrelated images finds 8-12 of 50 by chance
+    # the overlap in the spanning tree's weight: "all" counts the mutual nearest neighbours of all M
+    # keypoints that fit the RANSAC pose (it does not saturate at b, so strong pairs do not tie);
+    # "best": the paper's, the b best matches' inliers. The loops, anchors and weak-view pairs
+    # always rank by the paper's w (docs/ACCURACY.md, section 16)
+    tree_overlap: str = "all"
 
     def __post_init__(self) -> None:
         validate(self)
@@ -452,6 +457,7 @@ RULES: dict[str, tuple[Any, str]] = {
     "score.min_overlap": _reals(0, 1),
     "score.min_parallax_deg": _reals(0, 180, high_open=True),
     "score.min_inliers": _ints(0),
+    "score.tree_overlap": _choice("all", "best"),
     "pairs.method": _name(),
     "pairs.sequential_overlap": _ints(1),
     "pairs.sequential_quadratic": _flag(),

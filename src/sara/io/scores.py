@@ -1,7 +1,8 @@
 """`scores.csv`: one row per scored candidate pair, every component of its score and its role.
 
-Columns: name0, name1, num_matches, num_inliers, overlap, parallax_deg, weight, accepted, reason,
-role. Floats are written with full precision (repr), so a file read back gives the same arrays.
+Columns: name0, name1, num_matches, num_inliers, num_inliers_all, overlap, parallax_deg, weight,
+accepted, reason, role. Floats are written with full precision (repr), so a file read back gives the
+same arrays. Files written before num_inliers_all existed are read with it equal to num_inliers.
 """
 
 from __future__ import annotations
@@ -24,7 +25,9 @@ class PairScores:
     Attributes:
         name0, name1: image names, P each.
         num_matches: (P,) int64 mutual nearest neighbours used (at most ``num_matches``).
-        num_inliers: (P,) int64 RANSAC inliers.
+        num_inliers: (P,) int64 RANSAC inliers (among the b best matches).
+        num_inliers_all: (P,) int64 mutual nearest neighbours of all keypoints that fit the RANSAC
+            pose (>= num_inliers where a pose was found); num_inliers when not given.
         overlap: (P,) float64 ``num_inliers / sqrt(N0 N1)``.
         parallax_deg: (P,) float64 median triangulation angle, degrees; NaN where not measured
             (the pair failed a test before the parallax one).
@@ -42,6 +45,11 @@ class PairScores:
     weight: np.ndarray
     accepted: np.ndarray
     reason: list[str]
+    num_inliers_all: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        if self.num_inliers_all is None:
+            self.num_inliers_all = np.array(self.num_inliers, dtype=np.int64, copy=True)
 
     def __len__(self) -> int:
         return len(self.name0)
@@ -56,14 +64,16 @@ class PairScores:
             num_matches=column("num_matches", np.int64), num_inliers=column("num_inliers", np.int64),
             overlap=column("overlap", np.float64), parallax_deg=column("parallax_deg", np.float64),
             weight=column("weight", np.float64), accepted=column("accepted", bool),
-            reason=[s.reason for s in scores],
+            reason=[s.reason for s in scores], num_inliers_all=column("num_inliers_all", np.int64),
         )
 
 
 CSV_COLUMNS = (
-    "name0", "name1", "num_matches", "num_inliers", "overlap", "parallax_deg", "weight",
+    "name0", "name1", "num_matches", "num_inliers", "num_inliers_all", "overlap", "parallax_deg", "weight",
     "accepted", "reason", "role",
 )
+#: columns a scores file may lack (written by an earlier version)
+OPTIONAL_COLUMNS = ("num_inliers_all",)
 
 
 
@@ -72,7 +82,8 @@ def concat_scores(first: PairScores, second: PairScores) -> PairScores:
     return PairScores(
         name0=first.name0 + second.name0, name1=first.name1 + second.name1,
         **{name: np.concatenate([getattr(first, name), getattr(second, name)])
-           for name in ("num_matches", "num_inliers", "overlap", "parallax_deg", "weight", "accepted")},
+           for name in ("num_matches", "num_inliers", "num_inliers_all", "overlap", "parallax_deg", "weight",
+                        "accepted")},
         reason=first.reason + second.reason,
     )
 
@@ -92,7 +103,7 @@ def write_scores_csv(path: Path, scores: PairScores, roles: Sequence[str] | None
             for k in range(len(scores)):
                 writer.writerow([
                     scores.name0[k], scores.name1[k],
-                    int(scores.num_matches[k]), int(scores.num_inliers[k]),
+                    int(scores.num_matches[k]), int(scores.num_inliers[k]), int(scores.num_inliers_all[k]),
                     repr(float(scores.overlap[k])), repr(float(scores.parallax_deg[k])),
                     repr(float(scores.weight[k])), "true" if scores.accepted[k] else "false",
                     scores.reason[k], roles[k] if roles is not None else "",
@@ -124,7 +135,8 @@ def read_scores_csv(path: Path) -> tuple[PairScores, list[str] | None]:
     path = Path(path)
     with open(path, newline="", encoding="utf-8") as f:
         reader = csv.DictReader(f)
-        missing = [c for c in CSV_COLUMNS if c not in (reader.fieldnames or [])]
+        fields = reader.fieldnames or []
+        missing = [c for c in CSV_COLUMNS if c not in fields and c not in OPTIONAL_COLUMNS]
         if missing:
             raise ValueError(f"{path} is not a scores file: columns {missing} are missing")
         rows = list(reader)
@@ -136,6 +148,7 @@ def read_scores_csv(path: Path) -> tuple[PairScores, list[str] | None]:
         name0=[r["name0"] for r in rows], name1=[r["name1"] for r in rows],
         num_matches=column("num_matches", int, np.int64),
         num_inliers=column("num_inliers", int, np.int64),
+        num_inliers_all=column("num_inliers_all", int, np.int64) if "num_inliers_all" in fields else None,
         overlap=column("overlap", float, np.float64),
         parallax_deg=column("parallax_deg", float, np.float64),
         weight=column("weight", float, np.float64),

@@ -100,7 +100,8 @@ def _score(ctx: PairContext, candidates: list[Pair]) -> scoring.PairScores:
 def _choose(num_images: int, edges: np.ndarray, scores: scoring.PairScores, conf: Any):
     """Roles of the candidates (spanning tree, augmentation, low-parallax rescue)."""
     chosen_graph = selection.select_pairs(num_images, edges, scores.weight, scores.parallax_deg, scores.accepted,
-                                          conf.graph, max_pairs=selection.first_round_cap(num_images, conf.graph))
+                                          conf.graph, max_pairs=selection.first_round_cap(num_images, conf.graph),
+                                          tree_weight=scoring.tree_weights(scores, conf.score))
     roles = list(chosen_graph.role)
     rescued = rescue_low_parallax(num_images, edges, roles, scores)
     return roles, chosen_graph, rescued

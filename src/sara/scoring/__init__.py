@@ -15,6 +15,7 @@ from .scorer import (
     rejection_reason,
     score_pair,
     score_pairs,
+    tree_weights,
 )
 from .twoview import (
     FOCAL_SCALES,
@@ -35,5 +36,5 @@ __all__ = [
     "estimate_relative_pose", "explained_by_rotation", "inlier_parallax_deg", "load_views",
     "mutual_matches_from_similarity", "mutual_nearest_neighbours", "normalize_descriptors", "pair_weight",
     "read_scores_csv", "rejection_reason", "rotation_focal_scale", "rotation_residuals", "sampson_errors",
-    "score_pair", "score_pairs", "triangulation_angles_deg", "write_scores_csv",
+    "score_pair", "score_pairs", "tree_weights", "triangulation_angles_deg", "write_scores_csv",
 ]

@@ -15,6 +15,14 @@ so the relative rotation does not count: a pure rotation or a near-duplicate pai
 From the inlier count and ``P`` come the overlap ``O = num_inliers / sqrt(N_i N_j)`` and the
 weight ``w = O^alpha * g(P)^beta``, ``g(P) = min(P, sat) / sat``.
 
+The b best matches bound that inlier count: on well-textured scenes most overlapping pairs have all
+b of them inliers, so their weights tie, and a spanning tree of ``w`` is decided by the order of the
+pairs (by name). The scorer therefore also counts ``num_inliers_all``: the mutual nearest neighbours
+among *all* M keypoints that fit the pose RANSAC found (the same error threshold). It does not
+saturate, and it ranks pairs by how many matches a full matching verifies better than
+``num_inliers`` does (docs/ACCURACY.md, section 16). The spanning tree uses it; see
+`tree_overlap`.
+
 Frames: ``R, t`` is ``cam1_from_cam0`` (``x_cam1 = R x_cam0 + t``); normalised camera
 coordinates are ``(x / z, y / z)`` of the point in the camera frame (undistorted).
 """
@@ -41,7 +49,7 @@ from ..descriptors import l2_normalize, mutual_matches_from_similarity, mutual_n
 from ..execute import Executor, SerialExecutor
 from ..io.h5 import FeatureCache, Features
 from ..io.scores import PairScores
-from .twoview import estimate_relative_pose, inlier_parallax_deg
+from .twoview import estimate_relative_pose, inlier_parallax_deg, sampson_errors
 
 logger = logging.getLogger(__name__)
 
@@ -102,12 +110,30 @@ class PairScore:
     weight: float  # 0 when the parallax was not measured
     accepted: bool
     reason: str  # one of REASONS, "" when accepted
+    num_inliers_all: int = 0  # mutual nearest neighbours of all M keypoints that fit the pose
 
 
 def pair_weight(overlap: float, parallax_deg: float, conf: ScoreConfig) -> float:
     """``w = O^alpha * g(P)^beta`` with ``g(P) = min(P, sat) / sat``."""
     saturated = min(max(parallax_deg, 0.0), conf.parallax_saturation_deg) / conf.parallax_saturation_deg
     return float(max(overlap, 0.0) ** conf.alpha * saturated**conf.beta)
+
+
+def tree_weights(scores: PairScores, conf: ScoreConfig) -> np.ndarray:
+    """(P,) float64: the weight the spanning tree maximises, ``scores.weight`` but for the overlap.
+
+    With ``conf.tree_overlap == "all"`` the overlap counts ``num_inliers_all`` instead of the b best
+    matches' inliers (`score_pair`), so pairs whose b best matches are all inliers no longer tie.
+    Rejected pairs keep weight 0.
+    """
+    if conf.tree_overlap == "best":
+        return np.asarray(scores.weight, dtype=np.float64)
+    out = np.zeros(len(scores), dtype=np.float64)
+    for k in np.flatnonzero(scores.accepted):
+        inliers = max(int(scores.num_inliers[k]), 1)
+        overlap_all = float(scores.overlap[k]) * max(int(scores.num_inliers_all[k]), inliers) / inliers
+        out[k] = pair_weight(overlap_all, float(scores.parallax_deg[k]), conf)
+    return out
 
 
 def rejection_reason(
@@ -128,7 +154,9 @@ def rejection_reason(
 def score_pair(view0: ViewFeatures, view1: ViewFeatures, conf: ScoreConfig, *, seed: int = 0) -> PairScore:
     """Score one pair: mutual NN, short RANSAC, parallax, overlap, weight.
 
-    ``num_inliers`` counts the RANSAC inliers; ``parallax_deg`` is :func:`inlier_parallax_deg`;
+    ``num_inliers`` counts the RANSAC inliers among the b best matches; ``num_inliers_all`` the
+    mutual nearest neighbours of all M keypoints within the same error of that pose (at least
+    ``num_inliers``; 0 without a pose); ``parallax_deg`` is :func:`inlier_parallax_deg`;
     ``overlap`` is ``num_inliers / sqrt(N0 * N1)`` with N the keypoints used (at most M per image).
     A pair that fails a test before the parallax one (no model, too few inliers, too little
     overlap) is not triangulated: nothing uses its parallax, which is NaN ("not measured"), and its
@@ -136,13 +164,17 @@ def score_pair(view0: ViewFeatures, view1: ViewFeatures, conf: ScoreConfig, *, s
     a pair's cost. The same views, settings and seed always give the same score.
     """
     if view0.unit and view1.unit:  # normalised once per view, not once per pair
-        matches, _ = mutual_matches_from_similarity(view0.descriptors @ view1.descriptors.T, conf.num_matches)
+        every, _ = mutual_matches_from_similarity(view0.descriptors @ view1.descriptors.T)
     else:
-        matches, _ = mutual_nearest_neighbours(view0.descriptors, view1.descriptors, conf.num_matches)
+        every, _ = mutual_nearest_neighbours(view0.descriptors, view1.descriptors)
+    matches = every[: conf.num_matches]  # the best b, most similar first
     x0, x1 = view0.points_norm[matches[:, 0]], view1.points_norm[matches[:, 1]]
     max_error = conf.ransac_max_error_px * 2.0 / (view0.focal_px + view1.focal_px)
     pose = estimate_relative_pose(x0, x1, max_error=max_error, iterations=conf.ransac_iterations, seed=seed)
     num_inliers = 0 if pose is None else int(pose.inliers.sum())
+    num_inliers_all = 0 if pose is None else max(num_inliers, int(np.count_nonzero(
+        sampson_errors(pose.R, pose.t, view0.points_norm[every[:, 0]], view1.points_norm[every[:, 1]]) <= max_error
+    )))
     denom = math.sqrt(view0.num_keypoints * view1.num_keypoints)
     overlap = num_inliers / denom if denom > 0 else 0.0
     reason = rejection_reason(pose is not None, num_inliers, overlap, math.inf, conf)
@@ -157,7 +189,7 @@ def score_pair(view0: ViewFeatures, view1: ViewFeatures, conf: ScoreConfig, *, s
         weight = pair_weight(overlap, parallax_deg, conf)
     return PairScore(
         num_matches=len(matches), num_inliers=num_inliers, overlap=overlap, parallax_deg=parallax_deg,
-        weight=weight, accepted=reason == "", reason=reason,
+        weight=weight, accepted=reason == "", reason=reason, num_inliers_all=num_inliers_all,
     )
 
 

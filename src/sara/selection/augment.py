@@ -280,6 +280,7 @@ def select_pairs(
     conf: GraphConfig | None = None,
     *,
     max_pairs: int | None = None,
+    tree_weight: np.ndarray | None = None,
 ) -> Selection:
     """Choose the pairs to match: spanning forest, then loops, anchors and weak views.
 
@@ -292,6 +293,8 @@ def select_pairs(
         conf: budgets and thresholds; defaults to ``GraphConfig()``.
         max_pairs: at most this many pairs in all (the augmentation budgets shrink in proportion;
             the spanning forest is always kept); None: no cap. See `first_round_cap`.
+        tree_weight: (E,) float64 the weight the spanning forest maximises (finite and >= 0 for
+            accepted pairs); None: ``weight``. The augmentation always ranks by ``weight``.
     Returns:
         A :class:`Selection`; the same input always gives the same output.
     """
@@ -306,13 +309,18 @@ def select_pairs(
         raise ValueError("weight must be finite and >= 0 for accepted pairs")
     if not np.all(np.isfinite(parallax_deg[accepted])):
         raise ValueError("parallax_deg must be finite for accepted pairs")
+    if tree_weight is None:
+        tree_weight = weight
+    tree_weight = _check_per_edge("tree_weight", tree_weight, len(edges)).astype(np.float64)
+    if not np.all(np.isfinite(tree_weight[accepted])) or np.any(tree_weight[accepted] < 0):
+        raise ValueError("tree_weight must be finite and >= 0 for accepted pairs")
 
     accepted_index = np.flatnonzero(accepted)
     components = connected_components(num_images, edges[accepted_index])
     _warn_if_disconnected(components)
     role = np.where(accepted, "unselected", "rejected").astype(f"<U{max(map(len, ROLES))}")
     forest_index = maximum_spanning_forest(
-        num_images, edges[accepted_index], weight[accepted_index]
+        num_images, edges[accepted_index], tree_weight[accepted_index]
     )
     tree = accepted_index[forest_index]
     role[tree] = "tree"
