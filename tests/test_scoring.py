@@ -295,7 +295,7 @@ def test_inliers_among_all_matches_rank_pairs_whose_best_matches_all_fit():
     """Two pairs with 80 and 200 true correspondences among 300 keypoints per image: the b = 50
     best matches are inliers in both, so their overlap and weight tie; the inliers among all
     mutual matches do not, and the spanning tree's weight counts those."""
-    conf = ScoreConfig()
+    conf = ScoreConfig(tree_overlap="all")
     pose1 = look_at(np.array([3.0, -8.0, 1.0]), np.zeros(3))
     few, many = (synthetic_pair(pose1, num_true=n, num_wrong=0, num_other=300 - n, seed=3) for n in (80, 200))
     scores = [score_pair(p.view0, p.view1, conf) for p in (few, many)]
@@ -307,7 +307,7 @@ def test_inliers_among_all_matches_rank_pairs_whose_best_matches_all_fit():
     tree = tree_weights(table, conf)
     assert tree[1] > 2 * tree[0]
     assert tree[0] == pytest.approx(pair_weight(scores[0].num_inliers_all / 300, scores[0].parallax_deg, conf))
-    np.testing.assert_array_equal(tree_weights(table, ScoreConfig(tree_overlap="best")), table.weight)
+    np.testing.assert_array_equal(tree_weights(table, ScoreConfig()), table.weight)  # the default: "best"
 
 
 def test_a_scores_file_of_an_earlier_version_reads_without_num_inliers_all(tmp_path):
@@ -322,7 +322,7 @@ def test_a_scores_file_of_an_earlier_version_reads_without_num_inliers_all(tmp_p
     path.write_text("\n".join(",".join(r[:column] + r[column + 1:]) for r in rows) + "\n")
     loaded, _ = read_scores_csv(path)
     np.testing.assert_array_equal(loaded.num_inliers_all, [50])
-    np.testing.assert_array_equal(tree_weights(loaded, ScoreConfig()), loaded.weight)
+    np.testing.assert_array_equal(tree_weights(loaded, ScoreConfig(tree_overlap="all")), loaded.weight)
 
 
 def test_thresholds_and_weight_follow_the_config():

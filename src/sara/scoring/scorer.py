@@ -20,8 +20,9 @@ b of them inliers, so their weights tie, and a spanning tree of ``w`` is decided
 pairs (by name). The scorer therefore also counts ``num_inliers_all``: the mutual nearest neighbours
 among *all* M keypoints that fit the pose RANSAC found (the same error threshold). It does not
 saturate, and it ranks pairs by how many matches a full matching verifies better than
-``num_inliers`` does (docs/ACCURACY.md, section 16). The spanning tree uses it; see
-`tree_overlap`.
+``num_inliers`` does (docs/ACCURACY.md, section 16). The spanning tree can use it
+(`ScoreConfig.tree_overlap`, off by default: trees of the most overlapping pairs have short
+baselines, which long lenses pay for).
 
 Frames: ``R, t`` is ``cam1_from_cam0`` (``x_cam1 = R x_cam0 + t``); normalised camera
 coordinates are ``(x / z, y / z)`` of the point in the camera frame (undistorted).
