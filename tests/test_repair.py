@@ -31,6 +31,15 @@ def test_repair_pairs_best_links_into_main(tmp_path: Path):
     assert two == [("a", "c"), ("b", "c")]
 
 
+def test_repair_pairs_rank_by_the_inliers_among_all_matches(tmp_path: Path):
+    # both links of c saturate at the 50 best matches; all mutual matches tell them apart
+    path = tmp_path / "scores.csv"
+    header = "name0,name1,num_matches,num_inliers,num_inliers_all,overlap,parallax_deg,weight,accepted,reason,role\n"
+    path.write_text(header + "a,c,50,50,90,0.05,5,0.05,true,,unselected\n"
+                    + "b,c,50,50,400,0.05,5,0.05,true,,unselected\n")
+    assert repair_pairs(path, pairs=[("a", "b")], main={"a", "b"}, left_out=["c"], per_view=1) == [("b", "c")]
+
+
 def test_a_repair_that_leaves_most_of_its_views_out_is_not_repeated(tmp_path: Path, monkeypatch):
     from types import SimpleNamespace
 

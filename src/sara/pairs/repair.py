@@ -36,7 +36,9 @@ def left_out_views(names: list[str], pairs: list[Pair], main: set[str]) -> list[
 
 def repair_pairs(scores_csv: Path, pairs: list[Pair], main: set[str], left_out: list[str],
                  per_view: int) -> list[Pair]:
-    """For each left-out view, its best unselected candidates (by RANSAC inliers) into the main model."""
+    """For each left-out view, its best unselected candidates into the main model: by the RANSAC
+    pose's inliers among all mutual matches (`num_inliers_all`, which does not saturate at the b
+    best matches and predicts a full matching's inliers better; docs/ACCURACY.md, 16.4)."""
     chosen = {tuple(sorted(p)) for p in pairs}
     targets = set(left_out)
     options: dict[str, list[tuple[int, Pair]]] = defaultdict(list)
@@ -47,7 +49,7 @@ def repair_pairs(scores_csv: Path, pairs: list[Pair], main: set[str], left_out: 
             continue
         for view, other in ((a, b), (b, a)):
             if view in targets and other in main:
-                options[view].append((int(scores.num_inliers[k]), pair))
+                options[view].append((int(scores.num_inliers_all[k]), pair))
     extra: list[Pair] = []
     for view in left_out:
         ranked = sorted(options[view], key=lambda item: (-item[0], item[1]))
