@@ -87,10 +87,10 @@ class ScoreConfig:
     min_inliers: int = 15  # RANSAC on unrelated images finds 8-12 of 50 by chance
     # the overlap in the spanning tree's weight: "best", the paper's (the b best matches' inliers), or
     # "all": the mutual nearest neighbours of all M keypoints that fit the RANSAC pose, which does
-    # not saturate at b. "all" makes trees of the nearest views: +0.005-0.045 AUC@1 on four shared
-    # scenes and two internet-photo stand-ins, but -0.2 to -0.4 on long-lens crops and -0.005 on
-    # bm-moldGoldCape, so it is not the default. Loops, anchors and weak-view pairs always rank by
-    # the paper's w (docs/ACCURACY.md, section 16)
+    # not saturate at b. "all" makes trees of the nearest views: AUC@1 +0.0003 to +0.007 on the five
+    # smaller shared scenes and +0.004 to +0.045 on two internet-photo stand-ins, but -0.16 to -0.40
+    # on long-lens crops and -0.004 on bm-moldGoldCape (three seeds), so it is not the default.
+    # Loops, anchors and weak-view pairs always rank by the paper's w (docs/ACCURACY.md, section 16)
     tree_overlap: str = "best"
 
     def __post_init__(self) -> None:
