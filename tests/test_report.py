@@ -137,6 +137,9 @@ def test_report_content(sara_run: Path):
     assert f"min {score['min_overlap']}" in text and f"min {score['min_inliers']}" in text
     assert text.count("data:image/jpeg;base64,") >= 6
     assert "camera positions seen from above" in text
+    s = data.scores
+    more = [e for e in range(len(s.pairs)) if s.num_inliers_all[e] > s.num_inliers[e]]
+    assert more and f"{s.num_inliers[more[0]]} inliers ({s.num_inliers_all[more[0]]} of all matches)" in text
 
 
 def test_no_run_is_a_clear_error(tmp_path: Path):

@@ -43,13 +43,14 @@ class Scores:
     """The columns of `scores.csv`, one row per candidate pair (arrays of equal length)."""
 
     pairs: list[Pair]
-    num_inliers: np.ndarray  # (E,) int64
+    num_inliers: np.ndarray  # (E,) int64, among the b best matches
     overlap: np.ndarray  # (E,) float64, O
     parallax_deg: np.ndarray  # (E,) float64, P
     weight: np.ndarray  # (E,) float64, w
     accepted: np.ndarray  # (E,) bool
     reason: list[str]  # "" when accepted
     role: list[str]  # tree | loop | anchor | weak | rescue | unselected | rejected
+    num_inliers_all: np.ndarray | None = None  # (E,) int64, among all mutual matches
 
 
 @dataclass
@@ -105,6 +106,7 @@ def read_scores(path: Path) -> Scores:
         num_inliers=table.num_inliers, overlap=table.overlap, parallax_deg=table.parallax_deg,
         weight=table.weight, accepted=table.accepted, reason=[r.strip() for r in table.reason],
         role=[r.strip() or ("unselected" if a else "rejected") for r, a in zip(roles, table.accepted)],
+        num_inliers_all=table.num_inliers_all,
     )
 
 

@@ -30,7 +30,7 @@ import numpy as np
 
 from ..io import write_text_atomic
 from ..io.pairs import Pair
-from . import ADDED_ROLES, SELECTED_ROLES, RunData, load_run
+from . import ADDED_ROLES, SELECTED_ROLES, RunData, Scores, load_run
 
 logger = logging.getLogger(__name__)
 
@@ -261,13 +261,21 @@ def _degrees(value: float) -> str:
     return f"{value:.2f}\u00b0" if np.isfinite(value) else "not measured"
 
 
+def _inliers(s: Scores, e: int) -> str:
+    """The pre-match's inliers: among the best matches, and among all mutual matches when known."""
+    text = f"{s.num_inliers[e]} inliers"
+    if s.num_inliers_all is not None and s.num_inliers_all[e] > s.num_inliers[e]:
+        text += f" ({s.num_inliers_all[e]} of all matches)"
+    return text
+
+
 def _edge_title(pair: Pair, role: str, data: RunData, score_index: dict[Pair, int]) -> str:
     text = f"{pair[0]} \u2013 {pair[1]}: {role}"
     s = data.scores
     if s is not None and pair in score_index:
         e = score_index[pair]
         text += (f"; O={s.overlap[e]:.4f}, P={_degrees(s.parallax_deg[e])}, w={s.weight[e]:.4f}, "
-                 f"{s.num_inliers[e]} inliers" + (f", {s.reason[e]}" if s.reason[e] else ""))
+                 f"{_inliers(s, e)}" + (f", {s.reason[e]}" if s.reason[e] else ""))
     if pair in data.verified:
         text += f"; {data.verified[pair]} verified matches"
     return text
@@ -581,7 +589,7 @@ def _thumbnails_section(data: RunData, thumbs: Thumbnails) -> str:
             label = s.role[e] if s.accepted[e] else f"rejected: {s.reason[e] or 'not accepted'}"
             cards.append(f"<figure class=\"pair\"><div>{thumbs.img(a)}{thumbs.img(b)}</div><figcaption>"
                          f"<b>{_esc(label)}</b> &middot; O={s.overlap[e]:.4f} &middot; P={_degrees(s.parallax_deg[e])} "
-                         f"&middot; w={s.weight[e]:.4f} &middot; {s.num_inliers[e]} inliers<br>{_esc(a)} &ndash; "
+                         f"&middot; w={s.weight[e]:.4f} &middot; {_inliers(s, e)}<br>{_esc(a)} &ndash; "
                          f"{_esc(b)}</figcaption></figure>")
         body += f"<h3>{title}</h3><div class=\"pairs\">{''.join(cards)}</div>"
     note = "" if data.images_root is not None else "The image folder recorded in run.json is not here: no thumbnails."
