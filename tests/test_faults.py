@@ -743,10 +743,16 @@ def test_atomic_write_leaves_nothing_when_it_fails(tmp_path):
 # ---------------------------------------------------------------------------------------------
 
 
+def _default_sigint() -> None:
+    """In the child: SIGINT as a foreground program gets it. A shell starts background jobs (e.g.
+    `.ci/run &`) with SIGINT ignored, Python keeps that, and the run would never see the signal."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def interrupt_when(cmd: list, marker: Path, signum: int, *, times: int = 1, timeout: float = 240):
     """Start `sara CMD`, send `signum` once `marker` exists; returns the finished process."""
     proc = subprocess.Popen([sys.executable, "-m", "sara", *map(str, cmd)], stdout=subprocess.DEVNULL,
-                            stderr=subprocess.PIPE, text=True)
+                            stderr=subprocess.PIPE, text=True, preexec_fn=_default_sigint)
     deadline = time.monotonic() + timeout
     while not marker.exists() and proc.poll() is None and time.monotonic() < deadline:
         time.sleep(0.02)
