@@ -124,17 +124,14 @@ def tree_weights(scores: PairScores, conf: ScoreConfig) -> np.ndarray:
     """(P,) float64: the weight the spanning tree maximises, ``scores.weight`` but for the overlap.
 
     With ``conf.tree_overlap == "all"`` the overlap counts ``num_inliers_all`` instead of the b best
-    matches' inliers (`score_pair`), so pairs whose b best matches are all inliers no longer tie.
-    Rejected pairs keep weight 0.
+    matches' inliers (`score_pair`), so pairs whose b best matches are all inliers no longer tie:
+    w scaled by ``(num_inliers_all / num_inliers)^alpha``. Rejected pairs keep weight 0.
     """
+    weight = np.asarray(scores.weight, dtype=np.float64)
     if conf.tree_overlap == "best":
-        return np.asarray(scores.weight, dtype=np.float64)
-    out = np.zeros(len(scores), dtype=np.float64)
-    for k in np.flatnonzero(scores.accepted):
-        inliers = max(int(scores.num_inliers[k]), 1)
-        overlap_all = float(scores.overlap[k]) * max(int(scores.num_inliers_all[k]), inliers) / inliers
-        out[k] = pair_weight(overlap_all, float(scores.parallax_deg[k]), conf)
-    return out
+        return weight
+    inliers = np.maximum(scores.num_inliers, 1)
+    return weight * (np.maximum(scores.num_inliers_all, inliers) / inliers) ** conf.alpha
 
 
 def rejection_reason(

@@ -271,6 +271,14 @@ def _warn_if_disconnected(components: np.ndarray) -> None:
     )
 
 
+def _accepted_weight(name: str, values: np.ndarray, accepted: np.ndarray) -> np.ndarray:
+    """(E,) float64 `values`, checked per edge and finite, >= 0 where `accepted`."""
+    values = _check_per_edge(name, values, len(accepted)).astype(np.float64)
+    if not np.all(np.isfinite(values[accepted])) or np.any(values[accepted] < 0):
+        raise ValueError(f"{name} must be finite and >= 0 for accepted pairs")
+    return values
+
+
 def select_pairs(
     num_images: int,
     edges: np.ndarray,
@@ -302,18 +310,12 @@ def select_pairs(
     if num_images < 1:
         raise ValueError(f"num_images must be >= 1, got {num_images}")
     edges = _check_graph(num_images, edges)
-    weight = _check_per_edge("weight", weight, len(edges)).astype(np.float64)
     parallax_deg = _check_per_edge("parallax_deg", parallax_deg, len(edges)).astype(np.float64)
     accepted = _check_per_edge("accepted", accepted, len(edges)).astype(bool)
-    if not np.all(np.isfinite(weight[accepted])) or np.any(weight[accepted] < 0):
-        raise ValueError("weight must be finite and >= 0 for accepted pairs")
+    weight = _accepted_weight("weight", weight, accepted)
+    tree_weight = weight if tree_weight is None else _accepted_weight("tree_weight", tree_weight, accepted)
     if not np.all(np.isfinite(parallax_deg[accepted])):
         raise ValueError("parallax_deg must be finite for accepted pairs")
-    if tree_weight is None:
-        tree_weight = weight
-    tree_weight = _check_per_edge("tree_weight", tree_weight, len(edges)).astype(np.float64)
-    if not np.all(np.isfinite(tree_weight[accepted])) or np.any(tree_weight[accepted] < 0):
-        raise ValueError("tree_weight must be finite and >= 0 for accepted pairs")
 
     accepted_index = np.flatnonzero(accepted)
     components = connected_components(num_images, edges[accepted_index])
