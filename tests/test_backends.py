@@ -114,3 +114,59 @@ def test_match_stage_keeps_every_worker_busy_and_run_settings_keep_matches(toy_b
               features_path=feats, features_backend="toy-cv-sift", executor=again, progress=False)
     assert again.jobs == []
     assert records.is_done(out, match.STAGE, records.read_record(out, match.STAGE)["key"])
+
+
+class AnyJobExecutor:
+    """Runs jobs here, as two workers would get them, and records them."""
+
+    workers = 2
+
+    def __init__(self) -> None:
+        self.jobs: list = []
+
+    def map(self, fn, items):
+        for item in items:
+            self.jobs.append(item)
+            yield fn(item)
+
+
+class ToyGpuNN(ToyMutualNN):
+    """The toy matcher, saying it runs on a GPU (it does not: nothing here needs one)."""
+
+    name = "toy-gpu-nn"
+    device = "cuda"
+
+
+class ToyGpuSift(ToyOpenCvSift):
+    name = "toy-gpu-sift"
+    device = "cuda:0"
+
+
+def test_networks_on_a_gpu_run_in_the_driver_not_in_every_worker(toy_backends, synthetic_scene,
+                                                                  tmp_path: Path) -> None:
+    from sara import colmap, extract, match
+    from sara.config import ExtractConfig, MatchConfig
+    from sara.io.images import scan_images
+
+    features.BACKENDS.register("toy-gpu-sift", ToyGpuSift)
+    matchers.BACKENDS.register("toy-gpu-nn", ToyGpuNN)
+    try:
+        images, _ = synthetic_scene
+        out = tmp_path / "out"
+        executor = AnyJobExecutor()
+        extract.run(ExtractConfig(backend="toy-gpu-sift"), scan_images(images, progress=False), out,
+                    executor=executor, progress=False)
+        assert executor.jobs == []  # no extraction job went to a worker
+        feats = out / "features-toy-gpu-sift.h5"
+        assert feats.is_file()
+        names = sorted(p.name for p in images.iterdir())
+        pairs_path = out / "pairs.txt"
+        pairs_path.write_text("".join(f"{a} {b}\n" for a, b in zip(names, names[1:])))
+        match.run(MatchConfig(backend="toy-gpu-nn"), pairs_path, out / "database.db", out, features_path=feats,
+                  features_backend="toy-gpu-sift", executor=executor, progress=False)
+        assert executor.jobs == []  # nor any matching job
+        with colmap.open_database(out / "database.db") as db:
+            assert len(list(colmap.verified_image_pairs(db))) == len(names) - 1
+    finally:
+        features.BACKENDS.unregister("toy-gpu-sift")
+        matchers.BACKENDS.unregister("toy-gpu-nn")

@@ -9,7 +9,7 @@ import sys
 import time
 from pathlib import Path
 
-from sara.execute import ProcessExecutor, SerialExecutor, make_executor
+from sara.execute import ProcessExecutor, SerialExecutor, for_device, make_executor
 
 
 def _square(x: int) -> int:
@@ -25,6 +25,27 @@ def test_executors_give_results_in_item_order() -> None:
         pool.close()
     assert list(SerialExecutor().map(_square, items)) == [x * x for x in items]
     assert make_executor("auto", 1).workers == 1
+
+
+class _Remote:
+    name = "ray"
+    workers = 8
+
+
+def test_a_network_on_an_accelerator_runs_in_the_driver_not_in_each_local_worker() -> None:
+    pool = ProcessExecutor(4)
+    for device in ("cuda", "cuda:1", "mps"):
+        assert isinstance(for_device(pool, device), SerialExecutor)
+    assert for_device(pool, "cpu") is pool  # on the CPU the workers are the parallelism
+    assert for_device(None, "cuda") is None
+    remote = _Remote()
+    assert for_device(remote, "cuda") is remote  # remote workers have their own devices
+
+    class Device:  # as torch.device: its kind in `type`
+        type = "cuda"
+
+    assert isinstance(for_device(pool, Device()), SerialExecutor)
+    pool.close()
 
 
 DRIVER = """

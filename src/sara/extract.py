@@ -16,7 +16,7 @@ from tqdm import tqdm
 from . import colmap
 from .config import ExtractConfig
 from .descriptors import l2_normalize
-from .execute import Executor, SerialExecutor, single_threaded_torch_in_worker
+from .execute import Executor, SerialExecutor, for_device, single_threaded_torch_in_worker
 from .features import Keypoints, LocalFeatures, features_file_name, make_backend
 from .io import DamagedOutputError, OutputStateError, atomic_path, ensure_free_space, fingerprint, records
 from .io.h5 import H5_ERRORS, Features, features_digest, has_features, write_features
@@ -372,6 +372,7 @@ def _extract_to_h5(backend: LocalFeatures, conf: ExtractConfig, images: ImageSet
     todo = [n for n in images.names if n not in done]
     chunks = [todo[k:k + EXTRACT_CHUNK] for k in range(0, len(todo), EXTRACT_CHUNK)]
     _BACKENDS[_backend_key(conf)] = backend  # in this process, reuse the one already loaded
+    executor = for_device(executor, getattr(backend, "device", "cpu"))
     results = (executor or SerialExecutor()).map(
         _extract_images, [_ExtractJob(conf, str(images.root), chunk) for chunk in chunks])
     failed: dict[str, str] = {}

@@ -16,7 +16,7 @@ from tqdm import tqdm
 
 from . import colmap
 from .config import MatchConfig
-from .execute import Executor, SerialExecutor, single_threaded_torch_in_worker
+from .execute import Executor, SerialExecutor, for_device, single_threaded_torch_in_worker
 from .io import DamagedOutputError, NoResultError, ensure_free_space, fingerprint, read_json, records, write_json_atomic
 from .io.h5 import FeatureCache
 from .io.pairs import Pair, read_pairs, write_pairs
@@ -202,6 +202,7 @@ def _match_all(conf: MatchConfig, matcher: Matcher, features_backend: str, featu
     tic = time.perf_counter()
     chunk_path = out_dir / ".sara" / "match_chunk.txt"
     size = conf.chunk_size
+    executor = for_device(executor, getattr(matcher, "device", "cpu"))
     workers = getattr(executor, "workers", 1) if executor is not None else 1
     if not hasattr(matcher, "match_in_database") and workers > 1:
         # a few chunks per worker, so that no worker idles at the end while another finishes a

@@ -54,7 +54,9 @@ class LocalFeatures(Protocol):
 
     `extract` takes one (H, W, 3) uint8 RGB image, already resized by the stage so that its longer
     side is at most `ExtractConfig.max_image_size`. A backend may also define
-    `extract_batch(images: list[np.ndarray]) -> list[Keypoints]` (used in chunks when present).
+    `extract_batch(images: list[np.ndarray]) -> list[Keypoints]` (used in chunks when present), and a
+    `device` attribute when it runs on an accelerator: the stage then calls it in the driver process
+    instead of loading it in every worker (`sara.execute.for_device`).
     """
 
     name: str

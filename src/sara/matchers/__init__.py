@@ -26,7 +26,9 @@ class Matcher(Protocol):
 
     `match` returns (K, 2) int32 indices (i0, i1) and (K,) float32 scores (larger is better).
     A matcher may also define `match_batch(pairs: list[tuple[Features, Features]])` returning a
-    list of such results (used in chunks when present).
+    list of such results (used in chunks when present). A matcher that runs on an accelerator says
+    so with a `device` attribute (a torch.device or "cuda", ...): the stage then calls it in the
+    driver process instead of loading it in every worker (`sara.execute.for_device`).
     """
 
     name: str
