@@ -15,6 +15,7 @@ from sara.colmap.refine import (
     TrackExtension,
     extend_tracks,
     read_geometry,
+    track_distance_threshold,
     triangulate_and_adjust,
 )
 from sara.config import make_config
@@ -186,10 +187,10 @@ def test_a_model_inside_a_larger_one_is_not_written(model: Path, tmp_path: Path)
     assert write_models_by_size(tmp_path, {0: part, 1: other}) == [5, 2]
 
 
-def _features_of(rec: pycolmap.Reconstruction, path: Path, *, seed: int = 0) -> Path:
+def _features_of(rec: pycolmap.Reconstruction, path: Path, *, seed: int = 0, noise: float = 0.1) -> Path:
     """A features file for the model's keypoints (hloc's pixel convention): every 3D point gets a
-    random unit descriptor that its observations carry with a little noise; other keypoints get
-    descriptors of their own."""
+    random unit descriptor that its observations carry with `noise` (a little by default); other
+    keypoints get descriptors of their own."""
     from sara.io.h5 import Features, write_features
 
     rng = np.random.default_rng(seed)
@@ -200,7 +201,7 @@ def _features_of(rec: pycolmap.Reconstruction, path: Path, *, seed: int = 0) -> 
             desc = rng.normal(size=(len(xy), 64))
             for k, p in enumerate(image.points2D):
                 if p.has_point3D():
-                    desc[k] = point_desc[p.point3D_id] + 0.1 * rng.normal(size=64)
+                    desc[k] = point_desc[p.point3D_id] + noise * rng.normal(size=64)
             desc /= np.linalg.norm(desc, axis=1, keepdims=True)
             write_features(h5, image.name, Features(xy, desc.astype(np.float32), np.ones(len(xy), np.float32),
                                                     (320, 240)))
@@ -234,3 +235,52 @@ def test_extend_tracks_finds_the_observations_a_model_lost(model: Path, tmp_path
             column = rng.normal(size=grp.shape[0])
             grp[:, idx] = column / np.linalg.norm(column)
     assert extend_tracks(rec, features, TrackExtension(max_view_angle_deg=180.0)) == 0
+
+
+def _remove_two_per_track(rec: pycolmap.Reconstruction, seed: int) -> set:
+    rng = np.random.default_rng(seed)
+    removed = set()
+    for pid in sorted(rec.point3D_ids()):
+        for element in rng.choice(list(rec.points3D[pid].track.elements), size=2, replace=False):
+            removed.add((element.image_id, element.point2D_idx, pid))
+            rec.delete_observation(element.image_id, element.point2D_idx)
+    return removed
+
+
+def test_extension_takes_its_descriptor_threshold_from_tracks_that_spread_more_than_sift(model: Path,
+                                                                                      tmp_path: Path):
+    """Learned descriptors of one 3D point differ more than SIFT's (nearest in the track at ~1, not
+    ~0.3): COLMAP's SIFT threshold 0.7 turns their observations away, the tracks' own threshold
+    takes them back, and a keypoint with another descriptor still does not join."""
+    features = _features_of(pycolmap.Reconstruction(str(model / "sparse" / "0")), tmp_path / "f.h5", noise=0.9)
+    wide = TrackExtension(max_view_angle_deg=180.0)
+    fixed = TrackExtension(max_view_angle_deg=180.0, track_distance_quantile=0.0)  # 0.7 alone
+    rec = pycolmap.Reconstruction(str(model / "sparse" / "0"))
+    removed = _remove_two_per_track(rec, seed=2)
+    assert extend_tracks(rec, features, fixed) < 0.5 * len(removed)
+    rec = pycolmap.Reconstruction(str(model / "sparse" / "0"))
+    _remove_two_per_track(rec, seed=2)
+    added = extend_tracks(rec, features, wide)
+    found = {(e.image_id, e.point2D_idx, pid) for pid in rec.point3D_ids() for e in rec.points3D[pid].track.elements}
+    assert added >= 0.95 * len(removed) and len(removed & found) == added
+
+    rec = pycolmap.Reconstruction(str(model / "sparse" / "0"))
+    removed = _remove_two_per_track(rec, seed=2)
+    rng = np.random.default_rng(3)
+    with h5py.File(features, "r+") as h5:
+        for image_id, idx, _ in removed:
+            grp = h5[rec.images[image_id].name]["descriptors"]
+            column = rng.normal(size=grp.shape[0])
+            grp[:, idx] = column / np.linalg.norm(column)
+    assert extend_tracks(rec, features, wide) == 0
+
+
+def test_track_distance_threshold_is_a_quantile_of_each_observations_nearest_in_its_track():
+    # track 0: three unit vectors, nearest distances 0 (two equal) and sqrt(2); track 1: two at distance 2
+    desc = np.array([[1, 0], [1, 0], [0, 1], [1, 0], [-1, 0]], dtype=np.float32)
+    start, count = np.array([0, 3, 5]), np.array([3, 2, 0])
+    assert track_distance_threshold(desc, start, count, 1.0) == pytest.approx(2.0)
+    assert track_distance_threshold(desc, start, count, 0.0) == 0.0  # off
+    # distances 0, 0, sqrt(2), 2, 2: the median is sqrt(2)
+    assert track_distance_threshold(desc, start, count, 0.5) == pytest.approx(np.sqrt(2.0))
+    assert track_distance_threshold(desc, np.array([0]), np.array([1]), 0.99) == 0.0  # no track of two

@@ -18,6 +18,7 @@ centre of the top-left pixel at (0.5, 0.5).
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import shutil
 from dataclasses import dataclass
@@ -127,14 +128,23 @@ class TrackExtension:
 
     The keypoint must be one of the two nearest free keypoints (no 3D point yet) within
     `radius_px` of the point's projection; its descriptor distance (unit vectors, L2) to the
-    nearest descriptor of the track at most `max_distance`, and below `max_ratio` times that of the
-    other candidate keypoint when there are two (COLMAP's SIFT matching uses 0.7 and 0.8); the view
-    must see the point from a direction at most `max_view_angle_deg` from a view that observes it.
+    nearest descriptor of the track at most the distance threshold, and below `max_ratio` times
+    that of the other candidate keypoint when there are two; the view must see the point from a
+    direction at most `max_view_angle_deg` from a view that observes it.
+
+    The distance threshold is `max_distance` (COLMAP's SIFT matching uses 0.7, and 0.8 for the
+    ratio) or, when larger, the `track_distance_quantile` of the model's own tracks: the distance
+    from an observation's descriptor to the nearest other descriptor of its track
+    (`track_distance_threshold`). SIFT's matched tracks stay far below 0.7 (99th percentile
+    0.31-0.36 on the six shared scenes), so for SIFT the threshold is 0.7. Learned descriptors spread
+    more (ALIKED, DISK: 1.03-1.09 on bm-moldGoldCape), and at 0.7 the extension turned away most of
+    their observations (docs/ACCURACY.md 17.3).
     """
 
     radius_px: float = 1.5
     max_distance: float = 0.7
     max_ratio: float = 0.8
+    track_distance_quantile: float = 0.99
     max_view_angle_deg: float = 45.0
     #: larger models are left as they are: observation descriptor values held in memory (float32),
     #: and views x points projected
@@ -197,6 +207,12 @@ def extend_tracks(rec: pycolmap.Reconstruction, features_path: Path,
         o_dir = xyz[o_point] - centers[o_view]
         o_dir /= np.linalg.norm(o_dir, axis=1, keepdims=True)
         cos_max = np.cos(np.radians(ext.max_view_angle_deg))
+        max_distance = max(ext.max_distance, track_distance_threshold(o_desc, start, count,
+                                                                      ext.track_distance_quantile))
+        if max_distance > ext.max_distance:
+            logger.info("track extension: descriptor distance threshold %.2f (the %g quantile of the tracks' own; "
+                        "at least %.2f)", max_distance, ext.track_distance_quantile, ext.max_distance)
+        ext = dataclasses.replace(ext, max_distance=max_distance)
         added = 0
         for v, iid in enumerate(views):
             if not usable[v]:
@@ -206,6 +222,29 @@ def extend_tracks(rec: pycolmap.Reconstruction, features_path: Path,
             added += _extend_view(rec, iid, cache.get(rec.images[iid].name), point_ids, xyz, centers[v], candidate,
                                   o_dir, o_desc, start, count, cos_max, ext)
     return added
+
+
+#: most tracks whose descriptors `track_distance_threshold` compares (evenly spread over all)
+TRACK_DISTANCE_SAMPLE = 5000
+
+
+def track_distance_threshold(o_desc: np.ndarray, start: np.ndarray, count: np.ndarray, quantile: float) -> float:
+    """The `quantile` of the distance from an observation's unit descriptor to the nearest other
+    descriptor of its track, over up to TRACK_DISTANCE_SAMPLE tracks of two or more observations
+    (evenly spaced, so the same model always gives the same value); 0 when there are none or
+    `quantile` is 0. Track k's descriptors are ``o_desc[start[k]:start[k] + count[k]]``."""
+    tracks = np.flatnonzero(count >= 2)
+    if quantile <= 0 or len(tracks) == 0:
+        return 0.0
+    tracks = tracks[np.linspace(0, len(tracks) - 1, min(len(tracks), TRACK_DISTANCE_SAMPLE)).astype(np.int64)]
+    nearest = []
+    for k in tracks:
+        desc = o_desc[start[k]:start[k] + count[k]]
+        sim = desc @ desc.T
+        np.fill_diagonal(sim, -np.inf)
+        nearest.append(sim.max(axis=1))
+    similarity = np.concatenate(nearest).astype(np.float64)
+    return float(np.quantile(np.sqrt(np.maximum(0.0, 2.0 - 2.0 * similarity)), quantile))
 
 
 def _ranges(start: np.ndarray, count: np.ndarray) -> np.ndarray:
