@@ -137,8 +137,8 @@ class TrackExtension:
     from an observation's descriptor to the nearest other descriptor of its track
     (`track_distance_threshold`). SIFT's matched tracks stay far below 0.7 (99th percentile
     0.31-0.36 on the six shared scenes), so for SIFT the threshold is 0.7. Learned descriptors spread
-    more (ALIKED, DISK: 1.03-1.09 on bm-moldGoldCape), and at 0.7 the extension turned away most of
-    their observations (docs/ACCURACY.md 17.3).
+    more (ALIKED, DISK: 1.03-1.09 on bm-moldGoldCape), and at 0.7 the extension added half the
+    observations there that it adds with their own threshold (docs/ACCURACY.md 17.3).
     """
 
     radius_px: float = 1.5
