@@ -284,3 +284,26 @@ def test_track_distance_threshold_is_a_quantile_of_each_observations_nearest_in_
     # distances 0, 0, sqrt(2), 2, 2: the median is sqrt(2)
     assert track_distance_threshold(desc, start, count, 0.5) == pytest.approx(np.sqrt(2.0))
     assert track_distance_threshold(desc, np.array([0]), np.array([1]), 0.99) == 0.0  # no track of two
+
+
+def test_extension_of_a_model_too_large_to_project_whole_compares_views_with_covisible_points(model: Path,
+                                                                                              tmp_path: Path):
+    """Above `max_projections` views x points, each view is compared with the points of the views
+    it shares points with (here: all of them, so everything comes back), and the extension stops
+    when those comparisons reach the budget."""
+    features = _features_of(pycolmap.Reconstruction(str(model / "sparse" / "0")), tmp_path / "f.h5")
+    rec = pycolmap.Reconstruction(str(model / "sparse" / "0"))
+    removed = _remove_two_per_track(rec, seed=4)
+    whole = 8 * 200  # views x points of the model
+    added = extend_tracks(rec, features, TrackExtension(max_view_angle_deg=180.0, max_projections=whole - 1))
+    found = {(e.image_id, e.point2D_idx, pid) for pid in rec.point3D_ids() for e in rec.points3D[pid].track.elements}
+    assert added == len(removed) == 400 and removed <= found
+
+    # a budget of 120 comparisons: views are extended in order while their comparisons (each view's
+    # unobserved points: here its removed observations) fit in it
+    rec = pycolmap.Reconstruction(str(model / "sparse" / "0"))
+    removed = _remove_two_per_track(rec, seed=4)
+    per_view = [sum(1 for image_id, _, _ in removed if image_id == v) for v in sorted(rec.reg_image_ids())]
+    fits = np.cumsum(per_view) <= 120
+    added = extend_tracks(rec, features, TrackExtension(max_view_angle_deg=180.0, max_projections=120))
+    assert 0 < added == sum(np.array(per_view)[fits]) < len(removed)

@@ -146,9 +146,11 @@ class TrackExtension:
     max_ratio: float = 0.8
     track_distance_quantile: float = 0.99
     max_view_angle_deg: float = 45.0
-    #: larger models are left as they are: observation descriptor values held in memory (float32),
-    #: and views x points projected
-    max_values: int = 2**28
+    #: larger models are left as they are: observation descriptor values held in memory (float32,
+    #: one array: 2 GiB)
+    max_values: int = 2**29
+    #: views x points projected; above it each view is compared with the points of the views it
+    #: shares points with, and the extension stops when those add up to this many
     max_projections: int = 5 * 10**8
 
 
@@ -179,17 +181,22 @@ def extend_tracks(rec: pycolmap.Reconstruction, features_path: Path,
     obs_point, obs_view, obs_idx = (np.asarray(a, dtype=np.int64) for a in (obs_point, obs_view, obs_idx))
     xyz = np.array([rec.points3D[int(pid)].xyz for pid in point_ids], dtype=np.float64)
     centers = np.array([rec.images[iid].projection_center() for iid in views], dtype=np.float64)
+    # observations grouped by point (stable): point k's are rows [start[k], start[k] + count[k])
+    order = np.argsort(obs_point, kind="stable")
+    position = np.empty(len(order), np.int64)
+    position[order] = np.arange(len(order))
+    # observations grouped by view: those of view v are by_view[view_start[v]:view_start[v + 1]]
+    by_view = np.argsort(obs_view, kind="stable")
+    view_start = np.searchsorted(obs_view[by_view], np.arange(len(views) + 1))
     with FeatureCache(features_path, capacity=1) as cache:
-        first = cache.get(rec.images[views[0]].name)
-        if (len(obs_point) * first.descriptors.shape[1] > ext.max_values
-                or len(views) * len(point_ids) > ext.max_projections):
+        dim = cache.get(rec.images[views[0]].name).descriptors.shape[1]
+        covisible = len(views) * len(point_ids) > ext.max_projections
+        if len(obs_point) * dim > ext.max_values:
             logger.info("track extension: %d views, %d points, %d observations: too large, skipped", len(views),
                         len(point_ids), len(obs_point))
             return 0
-        # observations grouped by view: those of view v are by_view[view_start[v]:view_start[v + 1]]
-        by_view = np.argsort(obs_view, kind="stable")
-        view_start = np.searchsorted(obs_view[by_view], np.arange(len(views) + 1))
-        obs_desc = np.zeros((len(obs_point), first.descriptors.shape[1]), np.float32)
+        # the descriptors in point order, written once (no copy of a large array)
+        o_desc = np.zeros((len(obs_point), dim), np.float32)
         usable = np.zeros(len(views), bool)
         for v, iid in enumerate(views):
             feats = cache.get(rec.images[iid].name)
@@ -197,11 +204,11 @@ def extend_tracks(rec: pycolmap.Reconstruction, features_path: Path,
                 continue
             usable[v] = True
             here = by_view[view_start[v]:view_start[v + 1]]
-            obs_desc[here] = _unit(feats.descriptors[obs_idx[here]])
-        keep = usable[obs_view]  # observations whose descriptors are known
-        order = np.argsort(obs_point[keep], kind="stable")
-        o_point, o_view, o_desc = obs_point[keep][order], obs_view[keep][order], obs_desc[keep][order]
-        # per point, the slice [start, start + count) of its observations
+            o_desc[position[here]] = _unit(feats.descriptors[obs_idx[here]])
+        o_point, o_view = obs_point[order], obs_view[order]
+        if not usable.all():  # observations whose descriptors are unknown leave the tracks' lists
+            known = usable[o_view]
+            o_point, o_view, o_desc = o_point[known], o_view[known], o_desc[known]
         count = np.bincount(o_point, minlength=len(point_ids))
         start = np.concatenate([[0], np.cumsum(count)[:-1]])
         o_dir = xyz[o_point] - centers[o_view]
@@ -213,15 +220,42 @@ def extend_tracks(rec: pycolmap.Reconstruction, features_path: Path,
             logger.info("track extension: descriptor distance threshold %.2f (the %g quantile of the tracks' own; "
                         "at least %.2f)", max_distance, ext.track_distance_quantile, ext.max_distance)
         ext = dataclasses.replace(ext, max_distance=max_distance)
-        added = 0
+        seen = _incidence(o_view, o_point, len(views), len(point_ids)) if covisible else None
+        covisibility = (seen @ seen.T).tocsr() if covisible else None
+        if covisible:
+            logger.info("track extension: %d views x %d points: each view is compared with the points of the views "
+                        "it shares points with", len(views), len(point_ids))
+        added = projected = 0
         for v, iid in enumerate(views):
             if not usable[v]:
                 continue
-            candidate = count > 0  # points with known descriptors, not yet observed in this view
+            if covisible:  # the points of the views that share a point with this one
+                near = covisibility.indices[covisibility.indptr[v]:covisibility.indptr[v + 1]]
+                candidate = np.zeros(len(point_ids), bool)
+                candidate[seen[near].indices] = True
+                candidate &= count > 0
+            else:
+                candidate = count > 0  # points with known descriptors, not yet observed in this view
             candidate[obs_point[by_view[view_start[v]:view_start[v + 1]]]] = False
+            if covisible:
+                projected += int(candidate.sum())
+                if projected > ext.max_projections:
+                    logger.info("track extension: stopped after %d of %d views (%d projections)", v, len(views),
+                                projected)
+                    break
             added += _extend_view(rec, iid, cache.get(rec.images[iid].name), point_ids, xyz, centers[v], candidate,
                                   o_dir, o_desc, start, count, cos_max, ext)
     return added
+
+
+def _incidence(view: np.ndarray, point: np.ndarray, num_views: int, num_points: int):
+    """(V, P) sparse 0/1 matrix: view v observes point p (CSR, int32 counts)."""
+    from scipy.sparse import csr_matrix
+
+    matrix = csr_matrix((np.ones(len(view), np.int32), (view, point)), shape=(num_views, num_points))
+    matrix.sum_duplicates()
+    matrix.data[:] = 1
+    return matrix
 
 
 #: most tracks whose descriptors `track_distance_threshold` compares (evenly spread over all)
