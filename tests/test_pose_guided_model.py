@@ -307,3 +307,24 @@ def test_extension_of_a_model_too_large_to_project_whole_compares_views_with_cov
     fits = np.cumsum(per_view) <= 120
     added = extend_tracks(rec, features, TrackExtension(max_view_angle_deg=180.0, max_projections=120))
     assert 0 < added == sum(np.array(per_view)[fits]) < len(removed)
+
+
+def test_a_view_whose_features_do_not_fit_the_model_is_left_out_of_the_extension(model: Path, tmp_path: Path):
+    """A view whose features file holds another number of keypoints than the model's view is neither
+    extended nor used as a track's descriptor; the other views are extended as before."""
+    rec = pycolmap.Reconstruction(str(model / "sparse" / "0"))
+    features = _features_of(rec, tmp_path / "f.h5")
+    odd = sorted(rec.reg_image_ids())[0]
+    with h5py.File(features, "r+") as h5:  # one keypoint more than the model's view has
+        grp = h5[rec.images[odd].name]
+        for key in ("keypoints", "descriptors", "scores"):
+            data = grp[key][()]
+            axis = 1 if key == "descriptors" else 0
+            del grp[key]
+            grp[key] = np.concatenate([data, np.take(data, [0], axis=axis)], axis=axis)
+    removed = _remove_two_per_track(rec, seed=5)
+    added = extend_tracks(rec, features, TrackExtension(max_view_angle_deg=180.0))
+    found = {(e.image_id, e.point2D_idx, pid) for pid in rec.point3D_ids() for e in rec.points3D[pid].track.elements}
+    assert added == sum(1 for image_id, _, _ in removed if image_id != odd) > 0
+    assert {r for r in removed if r[0] != odd} <= found
+    assert not {r for r in removed if r[0] == odd} & found  # the odd view gets nothing back
