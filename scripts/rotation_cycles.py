@@ -30,6 +30,7 @@ import pycolmap
 from sara import colmap
 from sara.config import ScoreConfig
 from sara.descriptors import mutual_nearest_neighbours
+from sara.evaluation.metrics import rotation_angle_deg
 from sara.scoring.scorer import load_views
 from sara.scoring.twoview import estimate_relative_pose, sampson_errors
 
@@ -37,7 +38,8 @@ WRONG_SAMPSON_PX = 5.0
 
 
 def angle_deg(R: np.ndarray) -> float:
-    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))
+    """Angle of the rotation R (degrees)."""
+    return float(rotation_angle_deg(np.eye(3), R))
 
 
 def main() -> None:
@@ -74,7 +76,7 @@ def main() -> None:
         true_R = pose[b].rotation.matrix() @ pose[a].rotation.matrix().T
         true_t = pose[b].translation - true_R @ pose[a].translation
         rotation[a, b] = found.R
-        error[a, b] = angle_deg(found.R.T @ true_R)
+        error[a, b] = float(rotation_angle_deg(found.R, true_R))
         inliers = best[found.inliers]
         x0 = true_normalised(a, v0.points_norm[inliers[:, 0]])
         x1 = true_normalised(b, v1.points_norm[inliers[:, 1]])

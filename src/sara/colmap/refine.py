@@ -18,10 +18,9 @@ centre of the top-left pixel at (0.5, 0.5).
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import shutil
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -219,12 +218,13 @@ def extend_tracks(rec: pycolmap.Reconstruction, features_path: Path,
         if max_distance > ext.max_distance:
             logger.info("track extension: descriptor distance threshold %.2f (the %g quantile of the tracks' own; "
                         "at least %.2f)", max_distance, ext.track_distance_quantile, ext.max_distance)
-        ext = dataclasses.replace(ext, max_distance=max_distance)
-        seen = _incidence(o_view, o_point, len(views), len(point_ids)) if covisible else None
-        covisibility = (seen @ seen.T).tocsr() if covisible else None
+        ext = replace(ext, max_distance=max_distance)
         if covisible:
+            seen = _incidence(o_view, o_point, len(views), len(point_ids))
+            covisibility = (seen @ seen.T).tocsr()
             logger.info("track extension: %d views x %d points: each view is compared with the points of the views "
                         "it shares points with", len(views), len(point_ids))
+        described = count > 0  # points with known descriptors
         added = projected = 0
         for v, iid in enumerate(views):
             if not usable[v]:
@@ -233,10 +233,10 @@ def extend_tracks(rec: pycolmap.Reconstruction, features_path: Path,
                 near = covisibility.indices[covisibility.indptr[v]:covisibility.indptr[v + 1]]
                 candidate = np.zeros(len(point_ids), bool)
                 candidate[seen[near].indices] = True
-                candidate &= count > 0
+                candidate &= described
             else:
-                candidate = count > 0  # points with known descriptors, not yet observed in this view
-            candidate[obs_point[by_view[view_start[v]:view_start[v + 1]]]] = False
+                candidate = described.copy()
+            candidate[obs_point[by_view[view_start[v]:view_start[v + 1]]]] = False  # not yet observed here
             if covisible:
                 projected += int(candidate.sum())
                 if projected > ext.max_projections:
