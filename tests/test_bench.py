@@ -107,6 +107,9 @@ def test_bench_input_errors(tmp_path: Path):
     with pytest.raises(FileNotFoundError, match="has no gt/"):
         bench.run_bench([tmp_path / "scene"], tmp_path / "out", make_config(), methods=["exhaustive"])
     assert main(["bench", str(tmp_path / "scene"), "--out", str(tmp_path / "out"), "-s", "pairs.method=sara"]) == 2
+    (tmp_path / "scene" / "gt").mkdir()
+    with pytest.raises(ValueError, match="name_orders must be >= 0"):
+        bench.run_bench([tmp_path / "scene"], tmp_path / "out", make_config(), methods=["exhaustive"], name_orders=-1)
 
 
 def test_markdown_marks_failed_methods():
@@ -127,3 +130,59 @@ def test_ablation_variants_switch_the_graph_stages():
         if variant in expected:
             assert flags == expected[variant], variant
     assert len(bench.ABLATION_VARIANTS) == 8
+
+
+def test_a_renamed_scene_holds_the_same_images_and_poses_under_new_names(synthetic_scene, tmp_path: Path):
+    import numpy as np
+    import pycolmap
+
+    from sara.bench.names import MAPPING_FILE, new_names, renamed_scene
+
+    images, gt = synthetic_scene
+    scene = images.parent
+    renamed = renamed_scene(scene, tmp_path, 1)
+    assert renamed == tmp_path / f"{scene.name}~names1"
+    mapping = json.loads((renamed / MAPPING_FILE).read_text())
+    originals = sorted(p.name for p in images.iterdir())
+    assert sorted(mapping) == originals and sorted(p.name for p in (renamed / "images").iterdir()) == sorted(mapping.values())
+    assert sorted(mapping.values()) != [mapping[n] for n in originals]  # the name order is not kept
+    for old, new in mapping.items():
+        assert (renamed / "images" / new).read_bytes() == (images / old).read_bytes()
+    truth, moved = pycolmap.Reconstruction(str(gt)), pycolmap.Reconstruction(str(renamed / "gt"))
+    by_name = {im.name: im for im in moved.images.values()}
+    for image in truth.images.values():
+        other = by_name[mapping[image.name]]
+        assert np.allclose(other.cam_from_world().matrix(), image.cam_from_world().matrix())
+        assert np.allclose(moved.cameras[other.camera_id].params, truth.cameras[image.camera_id].params)
+    # the same order gives the same names and reuses the folder; another order other names
+    stamp = (renamed / MAPPING_FILE).stat().st_mtime_ns
+    assert renamed_scene(scene, tmp_path, 1) == renamed and (renamed / MAPPING_FILE).stat().st_mtime_ns == stamp
+    assert new_names(originals, 2) != mapping and new_names(originals, 1) == mapping
+    with pytest.raises(ValueError, match="positive"):
+        new_names(originals, 0)
+
+
+def test_bench_over_name_orders_sums_each_method_up_over_the_namings(synthetic_scene, tmp_path: Path):
+    images, _ = synthetic_scene
+    out = tmp_path / "bench"
+    result = bench.run_bench([images.parent], out, make_config(), methods=["exhaustive"], progress=False,
+                             plot=False, name_orders=1)
+    name = images.parent.name
+    assert [r["scene"] for r in result.rows] == [name, f"{name}~names1"]
+    assert all(r["registered_pct"] == 100.0 and r["auc@5"] is not None for r in result.rows)
+    summary = json.loads((out / "names.json").read_text())["summary"]
+    assert [(e["scene"], e["method"], e["namings"]) for e in summary] == [(name, "exhaustive", 2)]
+    aucs = [r["auc@1"] for r in result.rows]
+    assert summary[0]["auc@1_min"] == min(aucs) and summary[0]["auc@1_max"] == max(aucs)
+    assert summary[0]["auc@1_mean"] == pytest.approx(sum(aucs) / 2)
+    assert "| " + name + " | exhaustive | 2 |" in (out / "names.md").read_text()
+
+
+def test_names_summary_counts_only_the_namings_that_ran():
+    rows = [{"scene": "s", "method": "sara", "auc@1": 0.5, "auc@5": 0.9, "registered_pct": 100.0, "pairs": 10},
+            {"scene": "s~names1", "method": "sara", "auc@1": 0.7, "auc@5": 0.8, "registered_pct": 90.0, "pairs": 12},
+            {"scene": "s~names2", "method": "sara", "error": "RuntimeError: no model"}]
+    (entry,) = bench.names_summary(rows)
+    assert entry["namings"] == 2 and entry["auc@1_mean"] == pytest.approx(0.6)
+    assert (entry["auc@5_min"], entry["auc@5_max"], entry["registered_pct_min"], entry["pairs_mean"]) == (0.8, 0.9, 90.0, 11)
+    assert "0.6000 (0.5000-0.7000)" in bench.render_names([entry])

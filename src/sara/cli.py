@@ -185,6 +185,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="override a configuration value for every method (repeatable)")
     p.add_argument("--workers", type=int, help="parallel workers (default 0: one per CPU core); results do not change")
     p.add_argument("--no-plot", action="store_true", help="skip bench.png")
+    p.add_argument("--name-orders", type=int, default=0, metavar="K",
+                   help="also run each scene under K random namings of its images (names.md: the spread "
+                        "that file names alone cause)")
     _add_output(p)
     return parser
 
@@ -296,11 +299,14 @@ def _cmd_bench(args: argparse.Namespace) -> None:
         raise ValueError("choose the pair sources with --methods, not -s pairs.method")
     conf = make_config(args.preset, overrides)
     result = bench.run_bench(args.scenes, args.out, conf, methods=bench.parse_methods(args.methods),
-                             ablation=args.ablation, progress=not args.quiet, plot=not args.no_plot)
+                             ablation=args.ablation, progress=not args.quiet, plot=not args.no_plot,
+                             name_orders=args.name_orders)
     print(bench.render_markdown(result.rows, bench.TABLE_COLUMNS, bench.TABLE_TITLE))
     if args.ablation:
         print(bench.render_markdown(result.ablation_rows, bench.ABLATION_COLUMNS, bench.ABLATION_TITLE,
                                     note=bench.ABLATION_NOTE, first="Variant"))
+    if args.name_orders:
+        print(bench.render_names(bench.names_summary(result.rows)))
     print("results: " + ", ".join(str(p) for p in result.files))
 
 

@@ -1,6 +1,7 @@
-"""`sara bench`: every pair source side by side on scenes with known poses (`run.py`), and the
-tables and plot of the results (`tables.py`)."""
+"""`sara bench`: every pair source side by side on scenes with known poses (`run.py`), the
+tables and plot of the results (`tables.py`), and scenes under random file names (`names.py`)."""
 
+from .names import renamed_scene
 from .run import (
     ABLATION_VARIANTS,
     DEFAULT_METHODS,
@@ -15,10 +16,13 @@ from .tables import (
     ABLATION_TITLE,
     TABLE_COLUMNS,
     TABLE_TITLE,
+    names_summary,
     render_markdown,
+    render_names,
 )
 
 __all__ = [
     "ABLATION_COLUMNS", "ABLATION_NOTE", "ABLATION_TITLE", "ABLATION_VARIANTS", "DEFAULT_METHODS", "TABLE_COLUMNS",
-    "TABLE_TITLE", "BenchResult", "parse_methods", "render_markdown", "run_bench", "run_method",
+    "TABLE_TITLE", "BenchResult", "names_summary", "parse_methods", "render_markdown", "render_names",
+    "renamed_scene", "run_bench", "run_method",
 ]

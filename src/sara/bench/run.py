@@ -27,7 +27,8 @@ from typing import Any
 
 from .. import extract, pipeline
 from ..config import PipelineConfig, apply_overrides
-from ..io import OutputLock, fingerprint, records
+from ..io import OutputLock, fingerprint, records, write_json_atomic, write_text_atomic
+from .names import renamed_scene
 from .tables import (
     ABLATION_COLUMNS,
     ABLATION_NOTE,
@@ -35,7 +36,9 @@ from .tables import (
     AUC_THRESHOLDS,
     TABLE_COLUMNS,
     TABLE_TITLE,
+    names_summary,
     plot_results,
+    render_names,
     write_tables,
 )
 
@@ -220,10 +223,16 @@ def bench_scene(conf: PipelineConfig, scene: Path, out_dir: Path, methods: Seque
 
 def run_bench(scenes: Sequence[Path], out_dir: Path, conf: PipelineConfig, *,
               methods: Sequence[str] = DEFAULT_METHODS, ablation: bool = False, progress: bool = True,
-              plot: bool = True) -> BenchResult:
-    """Benchmark `methods` on every scene into `out_dir`; writes and returns the results."""
+              plot: bool = True, name_orders: int = 0) -> BenchResult:
+    """Benchmark `methods` on every scene into `out_dir`; writes and returns the results.
+
+    With `name_orders` K > 0 each scene also runs under K random namings of its images
+    (`names.renamed_scene`, kept in ``out_dir/renamed``), each a scene of its own, and
+    ``out_dir/names.md`` sums each method up over the namings."""
     methods = parse_methods(list(methods))
     scenes = [Path(s) for s in scenes]
+    if name_orders < 0:
+        raise ValueError(f"name_orders must be >= 0, got {name_orders}")
     for scene in scenes:
         scene_paths(scene)  # fail before hours of work, not after
     names = [s.name for s in scenes]
@@ -233,8 +242,11 @@ def run_bench(scenes: Sequence[Path], out_dir: Path, conf: PipelineConfig, *,
     out_dir.mkdir(parents=True, exist_ok=True)
     result = BenchResult()
     meta = {"scenes": [str(s) for s in scenes], "methods": list(methods), "config": conf.to_dict(),
-            "versions": pipeline.versions()}
+            "versions": pipeline.versions(), "name_orders": int(name_orders)}
     with OutputLock(out_dir):
+        if name_orders:
+            scenes = [s for scene in scenes for s in
+                      [scene, *(renamed_scene(scene, out_dir / "renamed", k) for k in range(1, name_orders + 1))]]
         for i, scene in enumerate(scenes, 1):
             logger.info("bench: scene %s (%d/%d)", scene.name, i, len(scenes))
             rows, ablation_rows = bench_scene(conf, scene, out_dir, methods, ablation=ablation, progress=progress)
@@ -242,6 +254,11 @@ def run_bench(scenes: Sequence[Path], out_dir: Path, conf: PipelineConfig, *,
             result.ablation_rows += ablation_rows
             add_exhaustive_ratios(result.rows)
             result.files = write_results(out_dir, result, meta, ablation=ablation, plot=plot)
+            if name_orders:
+                summary = names_summary(result.rows)
+                write_json_atomic(out_dir / "names.json", {**meta, "summary": summary})
+                write_text_atomic(out_dir / "names.md", render_names(summary))
+                result.files += [out_dir / "names.json", out_dir / "names.md"]
     return result
 
 

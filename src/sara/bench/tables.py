@@ -111,6 +111,44 @@ def write_tables(stem: Path, rows: Sequence[dict[str, Any]], columns: Sequence[t
     return paths
 
 
+NAMES_TITLE = "Over file-name orders"
+NAMES_NOTE = ("Each scene under its own names and under random ones (`--name-orders`); mean and range over "
+              "the namings where the method ran. COLMAP and SARA break ties by image name, so a difference "
+              "between methods smaller than a method's own range is not told apart by one naming.")
+
+
+def names_summary(rows: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Per scene (renamed copies counted with their original) and method: how many namings ran, AUC@1
+    and AUC@5 mean, min and max, the fewest images registered and the mean pairs."""
+    from .names import base_scene
+
+    groups: dict[tuple[str, str], list[dict[str, Any]]] = {}
+    for row in rows:
+        if not row.get("error") and row.get("auc@1") is not None:
+            groups.setdefault((base_scene(row["scene"]), row["method"]), []).append(row)
+    summary = []
+    for (scene, method), group in groups.items():
+        entry: dict[str, Any] = {"scene": scene, "method": method, "namings": len(group)}
+        for key in ("auc@1", "auc@5"):
+            values = [float(r[key]) for r in group]
+            entry.update({f"{key}_mean": sum(values) / len(values), f"{key}_min": min(values),
+                          f"{key}_max": max(values)})
+        entry["registered_pct_min"] = min(float(r.get("registered_pct") or 0.0) for r in group)
+        entry["pairs_mean"] = sum(float(r.get("pairs") or 0) for r in group) / len(group)
+        summary.append(entry)
+    return summary
+
+
+def render_names(summary: Sequence[dict[str, Any]]) -> str:
+    body = [[e["scene"], e["method"], str(e["namings"]),
+             f"{e['auc@1_mean']:.4f} ({e['auc@1_min']:.4f}-{e['auc@1_max']:.4f})",
+             f"{e['auc@5_mean']:.4f} ({e['auc@5_min']:.4f}-{e['auc@5_max']:.4f})",
+             f"{e['registered_pct_min']:.1f}", f"{e['pairs_mean']:.0f}"] for e in summary]
+    table = markdown_table(["Scene", "Method", "Namings", "AUC@1 mean (range)", "AUC@5 mean (range)",
+                            "Reg. % (fewest)", "Pairs (mean)"], body)
+    return "\n".join([f"# {NAMES_TITLE}", "", table, "", NAMES_NOTE, ""])
+
+
 def plot_results(rows: Sequence[dict[str, Any]], path: Path) -> Path | None:
     """Pairs vs AUC@5 and matching time vs pairs, every method on every scene; None without matplotlib."""
     try:
