@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..colmap.model import read_model, write_model
 from ..io import read_json, write_json_atomic
 from ..io.images import list_image_files
 
@@ -55,8 +56,6 @@ def renamed_scene(scene: Path, root: Path, order: int) -> Path:
     """``root/<scene name>~names<order>``: `scene` (``images/`` and ``gt/``) under the names of
     `new_names`; built once, reused after. Raises ValueError for a scene whose images are in
     sub-folders or whose true model names an image that is not there."""
-    import pycolmap
-
     scene = Path(scene).resolve()
     images = scene / "images"
     names = list_image_files(images)
@@ -66,8 +65,7 @@ def renamed_scene(scene: Path, root: Path, order: int) -> Path:
     dest = Path(root) / f"{scene.name}{SEPARATOR}{order}"
     if (dest / MAPPING_FILE).is_file() and read_json(dest / MAPPING_FILE) == mapping:
         return dest
-    truth = pycolmap.Reconstruction(str(scene / "gt"))
-    missing = sorted(im.name for im in truth.images.values() if im.name not in mapping)
+    missing = sorted(set(read_model(scene / "gt").names) - set(mapping))
     if missing:
         raise ValueError(f"{scene}: the true model names {len(missing)} image(s) not in images/, e.g. {missing[0]}")
     Path(root).mkdir(parents=True, exist_ok=True)
@@ -76,10 +74,7 @@ def renamed_scene(scene: Path, root: Path, order: int) -> Path:
         (work / "images").mkdir()
         for name, new in mapping.items():
             _link_or_copy(images / name, work / "images" / new)
-        for image in truth.images.values():
-            image.name = mapping[image.name]
-        (work / "gt").mkdir()
-        truth.write_text(str(work / "gt"))
+        write_model(scene / "gt", work / "gt", rename=mapping, text=True)
         write_json_atomic(work / MAPPING_FILE, mapping)
         if dest.exists():
             shutil.rmtree(dest)
