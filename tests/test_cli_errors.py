@@ -36,6 +36,18 @@ def test_folder_without_images(tmp_path: Path):
     assert_one_line_error(rc, err, "no images found")
 
 
+def test_images_without_any_feature_say_so_not_to_relax_thresholds(tmp_path: Path):
+    import numpy as np
+    from PIL import Image
+
+    (tmp_path / "flat").mkdir()
+    for k in range(3):
+        Image.fromarray(np.full((96, 128, 3), 128, np.uint8)).save(tmp_path / "flat" / f"f{k}.png")
+    rc, _, err = sara("run", tmp_path / "flat", tmp_path / "out", "-q")
+    assert_one_line_error(rc, err, "3 of 3 images have no features (flat or featureless)", code=5)
+    assert "relax" not in err
+
+
 def test_unreadable_pairs_file(tmp_path: Path, synthetic_scene):
     images, _ = synthetic_scene
     pairs = tmp_path / "pairs.txt"

@@ -260,11 +260,16 @@ def _no_pairs_reason(method: str, source_file: Path | None, info: dict[str, Any]
         return f"{source_file} lists no pairs: nothing to match{kept}"
     if num_images < 2:
         return f"only {num_images} usable image: a reconstruction needs at least 2{kept}"
+    extracted = records.read_record(out_dir, extract.STAGE) or {}
+    featureless = (extracted.get("info") or {}).get("images_without_features") or []
+    if num_images - len(featureless) < 2:
+        return (f"{len(featureless)} of {num_images} images have no features (flat or featureless): a "
+                f"reconstruction needs at least 2 with features{kept}")
     if "num_candidates" in info:
         rejected = ", ".join(f"{k} {v}" for k, v in sorted(info.get("rejected", {}).items())) or "none"
         return (f"the {method} pair source selected no pairs: {info.get('num_accepted', 0)} of "
-                f"{info['num_candidates']} candidate pairs accepted (rejected: {rejected}); relax the "
-                f"score.* thresholds{kept}")
+                f"{info['num_candidates']} candidate pairs accepted (rejected: {rejected}); the images may not "
+                f"overlap, or relax the score.* thresholds{kept}")
     return f"the {method} pair source selected no pairs{kept}"
 
 
