@@ -186,3 +186,19 @@ def test_names_summary_counts_only_the_namings_that_ran():
     assert entry["namings"] == 2 and entry["auc@1_mean"] == pytest.approx(0.6)
     assert (entry["auc@5_min"], entry["auc@5_max"], entry["registered_pct_min"], entry["pairs_mean"]) == (0.8, 0.9, 90.0, 11)
     assert "0.6000 (0.5000-0.7000)" in bench.render_names([entry])
+    assert "auc@1_vs_exhaustive" not in entry  # no exhaustive row to compare with
+
+
+def test_names_summary_compares_with_exhaustive_under_the_same_naming():
+    def row(scene, method, auc1, auc5):
+        return {"scene": scene, "method": method, "auc@1": auc1, "auc@5": auc5, "registered_pct": 100.0, "pairs": 1}
+    rows = [row("s", "exhaustive", 0.50, 0.90), row("s", "sara", 0.52, 0.89),
+            row("s~names1", "exhaustive", 0.40, 0.80), row("s~names1", "sara", 0.39, 0.81),
+            row("s~names2", "sara", 0.99, 0.99)]  # no exhaustive under naming 2: not paired
+    by_method = {e["method"]: e for e in bench.names_summary(rows)}
+    assert "auc@1_vs_exhaustive" not in by_method["exhaustive"]
+    diff = by_method["sara"]["auc@1_vs_exhaustive"]
+    assert (diff["namings"], diff["at_least"]) == (2, 1)
+    assert (diff["mean"], diff["min"], diff["max"]) == pytest.approx((0.005, -0.01, 0.02))
+    assert by_method["sara"]["namings"] == 3
+    assert "+0.0050 (-0.0100 to +0.0200); at least in 1 of 2" in bench.render_names([by_method["sara"]])
