@@ -202,3 +202,21 @@ def test_names_summary_compares_with_exhaustive_under_the_same_naming():
     assert (diff["mean"], diff["min"], diff["max"]) == pytest.approx((0.005, -0.01, 0.02))
     assert by_method["sara"]["namings"] == 3
     assert "+0.0050 (-0.0100 to +0.0200); at least in 1 of 2" in bench.render_names([by_method["sara"]])
+
+
+def test_renaming_leaves_hidden_files_out_and_keeps_true_images_that_are_missing(synthetic_scene, tmp_path: Path):
+    import shutil
+
+    from sara.bench.names import MAPPING_FILE, renamed_scene
+    from sara.colmap.model import read_model
+
+    images, gt = synthetic_scene
+    scene = tmp_path / "scene"
+    shutil.copytree(images.parent, scene)
+    first, *rest = sorted(p.name for p in (scene / "images").iterdir())
+    (scene / "images" / first).rename(scene / "images" / f".{first}")  # hidden: runs skip it
+    renamed = renamed_scene(scene, tmp_path / "renamed", 3)
+    mapping = json.loads((renamed / MAPPING_FILE).read_text())
+    assert sorted(mapping) == rest and len(list((renamed / "images").iterdir())) == len(rest)
+    names = read_model(renamed / "gt").names
+    assert first in names and sorted(set(names) - {first}) == sorted(mapping.values())

@@ -54,20 +54,23 @@ def _link_or_copy(source: Path, target: Path) -> None:
 
 def renamed_scene(scene: Path, root: Path, order: int) -> Path:
     """``root/<scene name>~names<order>``: `scene` (``images/`` and ``gt/``) under the names of
-    `new_names`; built once, reused after. Raises ValueError for a scene whose images are in
-    sub-folders or whose true model names an image that is not there."""
+    `new_names`; built once, reused after. Hidden files are left out, as runs skip them; images of the
+    true model that images/ lacks keep their names. Raises ValueError for a scene whose images are in
+    sub-folders."""
     scene = Path(scene).resolve()
     images = scene / "images"
-    names = list_image_files(images)
+    names = [n for n in list_image_files(images) if not n.startswith(".")]  # hidden files are skipped by runs
     if any("/" in n for n in names):
         raise ValueError(f"{scene}: renaming needs the images directly in images/, not in sub-folders")
     mapping = new_names(names, order)
     dest = Path(root) / f"{scene.name}{SEPARATOR}{order}"
     if (dest / MAPPING_FILE).is_file() and read_json(dest / MAPPING_FILE) == mapping:
         return dest
-    missing = sorted(set(read_model(scene / "gt").names) - set(mapping))
-    if missing:
-        raise ValueError(f"{scene}: the true model names {len(missing)} image(s) not in images/, e.g. {missing[0]}")
+    # images the true model has and images/ lacks keep their names (a run counts them as not registered)
+    clashes = sorted((set(read_model(scene / "gt").names) - set(mapping)) & set(mapping.values()))
+    if clashes:
+        raise ValueError(f"{scene}: the true model names {clashes[0]}, which is not in images/ and is one of "
+                         "the new names; rename it")
     Path(root).mkdir(parents=True, exist_ok=True)
     work = Path(tempfile.mkdtemp(prefix=f".{dest.name}.", dir=root))
     try:
