@@ -53,9 +53,9 @@ from .io import (
     IncompleteStageError,
     NoResultError,
     OutputLock,
-    atomic_path,
     file_digest,
     fingerprint,
+    link_or_copy,
     prepare_output_dir,
     read_json,
     records,
@@ -757,19 +757,9 @@ def share_features(features_dir: Path, out_dir: Path) -> bool:
     out_dir.mkdir(parents=True, exist_ok=True)
     colmap.remove_database(out_dir / extract.DB_NAME)
     colmap.copy_database(features_dir / extract.DB_NAME, out_dir / extract.DB_NAME)
-    _link_or_copy(features_dir / features_name, out_dir / features_name)
+    link_or_copy(features_dir / features_name, out_dir / features_name)
     records.mark_done(out_dir, extract.STAGE, source["key"], source.get("info", {}), outputs=source.get("outputs"))
     return True
-
-
-def _link_or_copy(src: Path, dst: Path) -> None:
-    """Hard-link a read-only input into another folder; copy across file systems."""
-    dst.unlink(missing_ok=True)
-    try:
-        os.link(src, dst)
-    except OSError:
-        with atomic_path(dst) as tmp:
-            shutil.copyfile(src, tmp)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -16,7 +16,6 @@ moved into place, and reused when it exists with the same names.
 
 from __future__ import annotations
 
-import os
 import shutil
 import tempfile
 from pathlib import Path
@@ -24,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from ..colmap.model import read_model, write_model
-from ..io import read_json, write_json_atomic
+from ..io import link_or_copy, read_json, write_json_atomic
 from ..io.images import list_image_files
 
 #: separates a scene's name from its naming in the renamed scene's folder name
@@ -40,16 +39,6 @@ def new_names(names: list[str], order: int) -> dict[str, str]:
     permutation = np.random.default_rng([order, len(names)]).permutation(len(names))
     width = len(str(max(len(names) - 1, 0)))
     return {name: f"n{int(k):0{width}d}{Path(name).suffix.lower()}" for name, k in zip(names, permutation)}
-
-
-def _link_or_copy(source: Path, target: Path) -> None:
-    try:
-        os.symlink(source, target)
-    except OSError:
-        try:
-            os.link(source, target)
-        except OSError:
-            shutil.copy2(source, target)
 
 
 def renamed_scene(scene: Path, root: Path, order: int) -> Path:
@@ -76,7 +65,7 @@ def renamed_scene(scene: Path, root: Path, order: int) -> Path:
     try:
         (work / "images").mkdir()
         for name, new in mapping.items():
-            _link_or_copy(images / name, work / "images" / new)
+            link_or_copy(images / name, work / "images" / new, symbolic=True)
         write_model(scene / "gt", work / "gt", rename=mapping, text=True)
         write_json_atomic(work / MAPPING_FILE, mapping)
         if dest.exists():

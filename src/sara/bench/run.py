@@ -253,22 +253,24 @@ def run_bench(scenes: Sequence[Path], out_dir: Path, conf: PipelineConfig, *,
             result.rows += rows
             result.ablation_rows += ablation_rows
             add_exhaustive_ratios(result.rows)
-            result.files = write_results(out_dir, result, meta, ablation=ablation, plot=plot)
-            if name_orders:
-                summary = names_summary(result.rows)
-                write_json_atomic(out_dir / "names.json", {**meta, "summary": summary})
-                write_text_atomic(out_dir / "names.md", render_names(summary))
-                result.files += [out_dir / "names.json", out_dir / "names.md"]
+            result.files = write_results(out_dir, result, meta, ablation=ablation, plot=plot,
+                                         names=bool(name_orders))
     return result
 
 
 def write_results(out_dir: Path, result: BenchResult, meta: dict[str, Any], *, ablation: bool,
-                  plot: bool) -> list[Path]:
-    """Write the tables (and the plot) of the rows so far; returns the files written."""
+                  plot: bool, names: bool = False) -> list[Path]:
+    """Write the tables (and the plot) of the rows so far; returns the files written. `names`: also
+    `names.json` and `names.md`, each method over the namings of its scenes (`--name-orders`)."""
     files = write_tables(out_dir / "results", result.rows, TABLE_COLUMNS, meta, title=TABLE_TITLE)
     if ablation:
         files += write_tables(out_dir / "ablation", result.ablation_rows, ABLATION_COLUMNS, meta,
                               title=ABLATION_TITLE, note=ABLATION_NOTE, first="Variant")
+    if names:
+        summary = names_summary(result.rows)
+        write_json_atomic(out_dir / "names.json", {**meta, "summary": summary})
+        write_text_atomic(out_dir / "names.md", render_names(summary))
+        files += [out_dir / "names.json", out_dir / "names.md"]
     png = plot_results(result.rows, out_dir / "bench.png") if plot else None
     return files + ([png] if png is not None else [])
 

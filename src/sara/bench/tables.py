@@ -11,6 +11,7 @@ from typing import Any
 
 from ..io import atomic_path, write_json_atomic, write_text_atomic
 from ..tables import format_number, markdown_table
+from .names import base_scene
 
 logger = logging.getLogger(__name__)
 
@@ -124,14 +125,11 @@ def names_summary(rows: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
     and AUC@5 mean, min and max, the fewest images registered and the mean pairs. Where exhaustive
     ran under the same naming, also the difference to it per naming (``auc@1_vs_exhaustive``: mean,
     min, max) and under how many namings the method was at least exhaustive's."""
-    from .names import base_scene
-
+    ran = [r for r in rows if not r.get("error") and r.get("auc@1") is not None]
     groups: dict[tuple[str, str], list[dict[str, Any]]] = {}
-    for row in rows:
-        if not row.get("error") and row.get("auc@1") is not None:
-            groups.setdefault((base_scene(row["scene"]), row["method"]), []).append(row)
-    exhaustive = {r["scene"]: r for r in rows
-                  if r["method"] == "exhaustive" and not r.get("error") and r.get("auc@1") is not None}
+    for row in ran:
+        groups.setdefault((base_scene(row["scene"]), row["method"]), []).append(row)
+    exhaustive = {r["scene"]: r for r in ran if r["method"] == "exhaustive"}
     summary = []
     for (scene, method), group in groups.items():
         entry: dict[str, Any] = {"scene": scene, "method": method, "namings": len(group)}

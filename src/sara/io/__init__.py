@@ -119,6 +119,25 @@ def atomic_path(path: Path) -> Iterator[Path]:
         tmp_path.unlink(missing_ok=True)
 
 
+def link_or_copy(src: Path, dst: Path, *, symbolic: bool = False) -> None:
+    """Put the read-only file `src` at `dst` without copying where possible: a symbolic link (with
+    `symbolic`; it follows `src` wherever `dst` is read from), else a hard link, else (another file
+    system, or links not allowed) an atomic copy. Replaces what is at `dst`."""
+    src, dst = Path(src), Path(dst)
+    dst.unlink(missing_ok=True)
+    if symbolic:
+        try:
+            os.symlink(src.resolve(), dst)
+            return
+        except OSError:
+            pass
+    try:
+        os.link(src, dst)
+    except OSError:
+        with atomic_path(dst) as tmp:
+            shutil.copyfile(src, tmp)
+
+
 def write_text_atomic(path: Path, text: str) -> None:
     with atomic_path(path) as tmp:
         tmp.write_text(text, encoding="utf-8")
