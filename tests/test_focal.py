@@ -5,10 +5,12 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import pytest
 from PIL import Image
 
 from conftest import scene_dir
 
+from sara.pairs.sara_source import known_field_of_view, resolve_tree_overlap
 from sara.scoring import focal
 
 
@@ -37,6 +39,25 @@ def test_estimate_finds_a_long_focal_length_three_times_the_prior():
     assert found is not None and found.num_pairs == 20
     assert abs(np.log(found.focal_px / (3 * prior))) < np.log(1.07)  # one grid step
     assert found.cost < found.cost_at_prior / 20
+
+
+def test_a_general_capture_gives_a_sound_estimate_and_a_flat_curve_does_not():
+    """A wide lens without EXIF (video frames): the true focal length is shorter than COLMAP's prior.
+    The estimate finds it and its cost curve is sound; it still does not replace the prior."""
+    width, height = 640, 480
+    prior = 1.2 * width
+    found = focal.estimate(_fundamentals(0.7 * prior, width, height, 20), width, height, prior)
+    assert abs(np.log(found.focal_px / (0.7 * prior))) < np.log(1.07)
+    assert found.sound and found.sharpness > 10 and found.agreement == 1.0
+    assert not found.replaces(prior)  # shorter: measured not to pay (docs/ACCURACY.md 19.2)
+    # the flat curve of a turntable (measured: sharpness 1.1-1.2, agreement 0.2-0.3) is not sound
+    assert not focal.FocalEstimate(0.35 * prior, 30, 0.002, 0.003, sharpness=1.2, agreement=0.25).sound
+    assert not focal.FocalEstimate(0.35 * prior, 30, 0.002, 0.003, sharpness=5.0, agreement=0.25).sound
+    assert not focal.FocalEstimate(0.35 * prior, 30, 0.002, 0.003, sharpness=1.2, agreement=0.9).sound
+    # much longer replaces the prior whatever the curve (the long-lens rule), a little longer does not
+    assert focal.FocalEstimate(3.0 * prior, 30, 0.002, 0.02, sharpness=1.1, agreement=0.2).replaces(prior)
+    assert not focal.FocalEstimate(2.0 * prior, 30, 0.002, 0.02, sharpness=9.0, agreement=0.9).replaces(prior)
+    assert focal.field_of_view_deg(320.0, 640, 480) == pytest.approx(90.0)
 
 
 def test_estimate_needs_enough_pairs():
@@ -101,3 +122,60 @@ def test_the_new_setting_keeps_earlier_extractions_valid(tmp_path: Path):
     records.mark_done(out, extract.STAGE, old_key)
     assert _key(images, ExtractConfig(), out, progress=False)[0] == old_key
     assert _key(images, ExtractConfig(estimate_focal=False), out, progress=False)[0] != old_key
+
+
+def _extract_focal(images: Path, out: Path, **settings) -> dict | None:
+    from sara import extract
+    from sara.config import ExtractConfig
+    from sara.io import records
+    from sara.io.images import scan_images
+
+    extract.run(ExtractConfig(num_threads=2, **settings), scan_images(images, progress=False), out, progress=False)
+    return records.done_info(out, extract.STAGE).get("focal")
+
+
+def _pair_context(out: Path, names: list[str], tree_overlap: str = "auto"):
+    from sara.config import PipelineConfig, ScoreConfig
+    from sara.pairs import PairContext
+
+    conf = PipelineConfig(score=ScoreConfig(tree_overlap=tree_overlap))
+    return PairContext(names=names, images_root=out, features_path=out / "features.h5", db_path=out / "database.db",
+                       out_dir=out, conf=conf)
+
+
+def test_quarter_size_frames_of_a_wide_lens_give_a_sound_estimate(tmp_path: Path):
+    """fountain-P11 at a quarter of its size (384 x 256, like small video frames without EXIF): the
+    true focal length is 345 px (a 58-degree field of view), COLMAP's prior 461 px."""
+    scene = scene_dir("strecha-fountain-P11")
+    images = tmp_path / "images"
+    images.mkdir()
+    for path in sorted((scene / "images").iterdir()):
+        with Image.open(path) as im:
+            im.resize((im.width // 4, im.height // 4), Image.LANCZOS).save(images / path.name, quality=92)
+    found = _extract_focal(images, tmp_path / "out")
+    assert found["sound"] and found["sharpness"] >= focal.MIN_SHARPNESS
+    assert 0.8 * 345 < found["estimated_px"] < 1.1 * 345 and found["prior_px"] == 1.2 * 384
+    assert not found["applied"]
+    # the selection knows the field of view, so its spanning tree ranks by the inliers of all matches
+    names = sorted(p.name for p in images.iterdir())
+    fov = known_field_of_view(tmp_path / "out" / "database.db", names)
+    assert 55 < fov < 70
+    assert resolve_tree_overlap(_pair_context(tmp_path / "out", names)) == ("all", fov)
+    assert resolve_tree_overlap(_pair_context(tmp_path / "out", names, "best")) == ("best", None)
+    # known focal lengths (camera_params: COLMAP's prior focal length) count as well: a long lens
+    out = tmp_path / "known"
+    _extract_focal(images, out, camera_params="1380,192,128,0")
+    assert known_field_of_view(out / "database.db", names) == pytest.approx(np.degrees(2 * np.arctan(192 / 1380)))
+    assert resolve_tree_overlap(_pair_context(out, names))[0] == "best"
+
+
+def test_a_turntable_gives_no_sound_estimate(tmp_path: Path):
+    """templeSparseRing: every optical axis through the object, the focal length is not observable
+    from the fundamental matrices and the estimate falls far below the truth (1,520 px)."""
+    images = scene_dir("middlebury-templeSparseRing") / "images"
+    found = _extract_focal(images, tmp_path / "out")
+    assert found["estimated_px"] < 0.5 * found["prior_px"]  # what the degenerate curve gives
+    assert not found["sound"] and not found["applied"] and found["sharpness"] < focal.MIN_SHARPNESS
+    names = sorted(p.name for p in images.iterdir())
+    assert known_field_of_view(tmp_path / "out" / "database.db", names) is None
+    assert resolve_tree_overlap(_pair_context(tmp_path / "out", names)) == ("best", None)

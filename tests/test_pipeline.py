@@ -4,6 +4,7 @@ from pathlib import Path
 
 import h5py
 import numpy as np
+import pytest
 
 from conftest import scene_dir
 
@@ -112,6 +113,9 @@ def test_weakly_matched_views_get_pairs_before_the_first_mapping(tmp_path: Path,
     assert pairs["num_pairs"] == pairs["num_selected"] + added + pairs.get("num_added_after_mapping", 0)
     lines = (out / "pairs.txt").read_text().splitlines()
     assert len(lines) == pairs["num_pairs"]
+    # the share of exhaustive matching counts the pairs of every round (10 images: 45 pairs)
+    assert pairs["fraction_of_exhaustive"] == pytest.approx(len(lines) / 45)
+    assert f"{len(lines)} pairs ({100 * len(lines) / 45:.1f}% of exhaustive)" in (out / "report.md").read_text()
     assert "added before mapping" in (out / "report.md").read_text()
     assert report.metrics["num_registered"] == 10
     caplog.clear()

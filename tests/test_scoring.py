@@ -307,7 +307,9 @@ def test_inliers_among_all_matches_rank_pairs_whose_best_matches_all_fit():
     tree = tree_weights(table, conf)
     assert tree[1] > 2 * tree[0]
     assert tree[0] == pytest.approx(pair_weight(scores[0].num_inliers_all / 300, scores[0].parallax_deg, conf))
-    np.testing.assert_array_equal(tree_weights(table, ScoreConfig()), table.weight)  # the default: "best"
+    np.testing.assert_array_equal(tree_weights(table, ScoreConfig(tree_overlap="best")), table.weight)
+    with pytest.raises(ValueError, match="auto"):  # the pair source resolves "auto" first
+        tree_weights(table, ScoreConfig())
 
 
 def test_a_scores_file_of_an_earlier_version_reads_without_num_inliers_all(tmp_path):

@@ -85,13 +85,15 @@ class ScoreConfig:
     min_overlap: float = 0.005  # tau_O
     min_parallax_deg: float = 0.5  # tau_P
     min_inliers: int = 15  # RANSAC on unrelated images finds 8-12 of 50 by chance
-    # the overlap in the spanning tree's weight: "best", the paper's (the b best matches' inliers), or
+    # the overlap in the spanning tree's weight: "best", the paper's (the b best matches' inliers),
     # "all": the mutual nearest neighbours of all M keypoints that fit the RANSAC pose, which does
-    # not saturate at b. "all" makes trees of the nearest views: AUC@1 +0.0003 to +0.007 on the five
-    # smaller shared scenes and +0.004 to +0.045 on two internet-photo stand-ins, but -0.16 to -0.40
-    # on long-lens crops and -0.004 on bm-moldGoldCape (three seeds), so it is not the default.
-    # Loops, anchors and weak-view pairs always rank by the paper's w (docs/ACCURACY.md, section 16)
-    tree_overlap: str = "best"
+    # not saturate at b and makes trees of the nearest views, or "auto": "all" where the images'
+    # field of view is known to be wide (EXIF, extract.camera_params or a sound estimate from the
+    # images; at least sara.pairs.sara_source.WIDE_FIELD_OF_VIEW_DEG), else "best". "all" gains on
+    # wide lenses (the Strecha scenes at full to quarter size, internet-photo stand-ins) and loses
+    # 0.16-0.40 AUC@1 on long-lens crops and 0.004 on bm-moldGoldCape (docs/ACCURACY.md 16, 19).
+    # Loops, anchors and weak-view pairs always rank by the paper's w
+    tree_overlap: str = "auto"
 
     def __post_init__(self) -> None:
         validate(self)
@@ -459,7 +461,7 @@ RULES: dict[str, tuple[Any, str]] = {
     "score.min_overlap": _reals(0, 1),
     "score.min_parallax_deg": _reals(0, 180, high_open=True),
     "score.min_inliers": _ints(0),
-    "score.tree_overlap": _choice("all", "best"),
+    "score.tree_overlap": _choice("auto", "all", "best"),
     "pairs.method": _name(),
     "pairs.sequential_overlap": _ints(1),
     "pairs.sequential_quadratic": _flag(),

@@ -185,21 +185,18 @@ def _check_focal(db_path: Path, h5_path: Path, names: list[str]) -> dict | None:
     if found is None:
         logger.info("focal length: too few pairs of neighbouring images to check COLMAP's prior (%.0f px)", prior)
         return {"prior_px": prior, "estimated_px": None, "applied": False}
-    applied = found.focal_px >= focal.LONGER_THAN_PRIOR * prior
+    applied = found.replaces(prior)
     if applied:
         colmap.set_focal_length(db_path, camera.camera_id, found.focal_px)
-        logger.warning("focal length: the images say %.0f px (%.1f-degree field of view), %.1fx COLMAP's prior "
+        logger.warning("focal length: the images say %.0f px (%.1f-degree field of view), %.2fx COLMAP's prior "
                        "of %.0f px; starting from %.0f px (give extract.camera_params if you know it)",
-                       found.focal_px, _fov_deg(found.focal_px, camera.width, camera.height),
+                       found.focal_px, focal.field_of_view_deg(found.focal_px, camera.width, camera.height),
                        found.focal_px / prior, prior, found.focal_px)
     else:
         logger.info("focal length: estimate %.0f px, prior %.0f px kept", found.focal_px, prior)
     return {"prior_px": prior, "estimated_px": found.focal_px, "applied": applied, "num_pairs": found.num_pairs,
-            "cost": found.cost, "cost_at_prior": found.cost_at_prior}
-
-
-def _fov_deg(focal_px: float, width: int, height: int) -> float:
-    return float(np.degrees(2.0 * np.arctan(max(width, height) / (2.0 * focal_px))))
+            "cost": found.cost, "cost_at_prior": found.cost_at_prior, "sharpness": found.sharpness,
+            "agreement": found.agreement, "sound": found.sound}
 
 
 def usable(images: ImageSet, out_dir: Path, *, warn: bool = False) -> ImageSet:

@@ -221,7 +221,7 @@ def select_pairs(conf: PipelineConfig, images: ImageSet, features_path: Path, ou
     write_pairs(pairs_path, pairs)
     n = len(images.names)
     info.update(method=method, num_pairs=len(pairs), num_selected=len(pairs), time_s=time.perf_counter() - tic,
-                fraction_of_exhaustive=len(pairs) / max(1, n * (n - 1) // 2))
+                num_exhaustive_pairs=n * (n - 1) // 2, fraction_of_exhaustive=len(pairs) / max(1, n * (n - 1) // 2))
     outputs = {name: file_digest(out_dir / name) for name in [PAIRS_NAME, *produced] if name in _TRACKED_PAIR_FILES}
     records.mark_done(out_dir, PAIRS_STAGE, key, info, outputs=outputs)
     return pairs_path
@@ -509,8 +509,10 @@ def _add_to_pairs_record(out_dir: Path, num_added: int, pairs_digest: dict[str, 
     record = records.read_record(out_dir, PAIRS_STAGE) or {}
     info = record.get("info", {})
     info[field] = info.get(field, 0) + num_added
-    info["num_pairs"] = (info.get("num_selected", info.get("num_pairs", 0)) + info.get("num_added_after_mapping", 0)
-                         + info.get("num_added_before_mapping", 0))
+    selected = info.get("num_selected", info.get("num_pairs", 0))
+    info["num_pairs"] = selected + info.get("num_added_after_mapping", 0) + info.get("num_added_before_mapping", 0)
+    if info.get("num_exhaustive_pairs"):  # the pairs of all rounds, as the report counts them
+        info["fraction_of_exhaustive"] = info["num_pairs"] / info["num_exhaustive_pairs"]
     outputs = {**record.get("outputs", {}), PAIRS_NAME: pairs_digest}
     records.mark_done(out_dir, PAIRS_STAGE, record.get("key", ""), info, outputs=outputs)
 

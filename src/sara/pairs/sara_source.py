@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import logging
 import time
+from dataclasses import replace
 from itertools import combinations
 from pathlib import Path
 from typing import Any
@@ -50,6 +51,8 @@ def select(ctx: PairContext) -> PairResult:
     timings["scoring"] = time.perf_counter() - tic
 
     tic = time.perf_counter()
+    tree_overlap, field_of_view = resolve_tree_overlap(ctx)
+    conf = replace(conf, score=replace(conf.score, tree_overlap=tree_overlap))
     roles, chosen_graph, rescued = _choose(len(names), edges, scores, conf)
     timings["graph"] = time.perf_counter() - tic
 
@@ -80,6 +83,8 @@ def select(ctx: PairContext) -> PairResult:
         "num_accepted": int(scores.accepted.sum()),
         "rejected": _count(r for r in scores.reason if r),
         "num_rescued": rescued,
+        "tree_overlap": tree_overlap,
+        "field_of_view_deg": field_of_view,
         "graph": chosen_graph.stats(),
         "selected_components": _component_sizes(labels),
     }
@@ -95,6 +100,54 @@ def _score(ctx: PairContext, candidates: list[Pair]) -> scoring.PairScores:
     return scoring.score_pairs(candidates, ctx.features_path, ctx.db_path, conf.score, executor=ctx.executor,
                                shard_size=conf.execute.shard_size, work_dir=ctx.out_dir / ".sara",
                                progress=ctx.progress, seed=conf.seed)
+
+
+#: a known field of view at least this wide (degrees, across the larger image side) makes the
+#: spanning tree of the most overlapping pairs (`score.tree_overlap=auto`); see `resolve_tree_overlap`
+WIDE_FIELD_OF_VIEW_DEG = 40.0
+
+
+def resolve_tree_overlap(ctx: PairContext) -> tuple[str, float | None]:
+    """The overlap the spanning tree ranks by (`ScoreConfig.tree_overlap`), and the field of view
+    it was chosen by (None where unknown).
+
+    ``auto`` takes ``all`` (the inliers among all mutual matches: trees of the nearest, most
+    overlapping views) when the images' field of view is known and at least WIDE_FIELD_OF_VIEW_DEG,
+    else ``best`` (the paper's weight, which prefers wider baselines). With a wide lens a short
+    baseline still fixes the relative pose well; with a long lens (or a turntable, whose focal
+    length the images cannot tell) it does not, and the trees of the nearest views lost up to 0.4
+    AUC@1 on long-lens crops (docs/ACCURACY.md 16.3, 19).
+    """
+    mode = ctx.conf.score.tree_overlap
+    if mode != "auto":
+        return mode, None
+    fov = known_field_of_view(ctx.db_path, ctx.names)
+    return ("all" if fov is not None and fov >= WIDE_FIELD_OF_VIEW_DEG else "best"), fov
+
+
+def known_field_of_view(db_path: Path, names: list[str]) -> float | None:
+    """The median field of view (degrees, larger image side) of `names`, over the images whose
+    focal length is known: from EXIF or `extract.camera_params` (the camera's prior focal length),
+    or a sound estimate from the images (`sara.scoring.focal`, the extract stage's record). None
+    when it is known for fewer than half of them."""
+    from .. import extract
+    from ..scoring import focal
+
+    cameras = colmap.cameras_by_image(db_path)
+    estimate = records.done_info(db_path.parent, extract.STAGE).get("focal") or {}
+    estimated = estimate.get("estimated_px") if estimate.get("sound") else None
+    fovs = []
+    for name in names:
+        camera = cameras.get(name)
+        if camera is None:
+            continue
+        if camera.has_prior_focal_length:
+            fovs.append(focal.field_of_view_deg(float(camera.mean_focal_length()), camera.width, camera.height))
+        elif estimated:  # only ever for one shared camera
+            fovs.append(focal.field_of_view_deg(float(estimated), camera.width, camera.height))
+    if not names or 2 * len(fovs) < len(names):
+        return None
+    return float(np.median(fovs))
 
 
 def _choose(num_images: int, edges: np.ndarray, scores: scoring.PairScores, conf: Any):

@@ -17,6 +17,12 @@ Strecha scenes (true: 3x). On a turntable capture
 (Middlebury's temples: every optical axis through the object) the problem is degenerate and the
 estimate falls to a fraction of the true value, and it always falls *below* the prior there. Hence
 sara replaces the prior only when the estimate is longer than it by at least `LONGER_THAN_PRIOR`.
+
+Whether an estimate can be trusted at all shows in the shape of the cost curve
+(`FocalEstimate.sound`): on a general capture the cost rises steeply below the estimate and most
+pairs, taken alone, put their own best focal length near it; on the turntables the curve is flat
+below the estimate and the pairs disagree. A sound estimate gives the field of view, which decides
+what kind of spanning tree the selection builds (`sara.pairs.sara_source`, docs/ACCURACY.md 19).
 """
 
 from __future__ import annotations
@@ -42,6 +48,14 @@ MIN_PAIRS = 8
 #: by +-30% with the pairs used on a narrow field of view, and a moderately better start did not pay
 #: (bm-moldGoldCape, estimate 2.1x the prior: AUC@1 0.9251 against 0.9295 from the prior)
 LONGER_THAN_PRIOR = 2.5
+#: a sound estimate: the median cost at focal / SHARPNESS_STEP is at least MIN_SHARPNESS times that at
+#: the estimate (the Strecha scenes at full, half and quarter size: 2.5-15; the turntables of Middlebury 1.1-1.2) ...
+SHARPNESS_STEP = 1.5
+MIN_SHARPNESS = 2.0
+#: ... and at least MIN_AGREEMENT of the pairs have their own best focal length within AGREEMENT_STEP
+#: of it (Strecha: 0.63-1.0; turntables 0.2-0.3)
+AGREEMENT_STEP = 1.25
+MIN_AGREEMENT = 0.5
 #: features per image used (the strongest)
 NUM_KEYPOINTS = 2048
 #: matches per pair kept (the most similar mutual nearest neighbours)
@@ -57,6 +71,28 @@ class FocalEstimate:
     num_pairs: int  # pairs with a fundamental matrix of MIN_INLIERS or more
     cost: float  # median cost at the estimate
     cost_at_prior: float  # median cost at the prior it is compared with
+    sharpness: float = 0.0  # median cost at focal_px / SHARPNESS_STEP over the cost at the estimate
+    agreement: float = 0.0  # share of pairs whose own best focal length is within AGREEMENT_STEP of it
+
+    @property
+    def sound(self) -> bool:
+        """Whether the cost curve pins the estimate down (not the flat curve of a degenerate capture)."""
+        return self.sharpness >= MIN_SHARPNESS and self.agreement >= MIN_AGREEMENT
+
+    def replaces(self, prior_px: float) -> bool:
+        """Whether this estimate should replace COLMAP's prior of `prior_px`: only when much longer.
+
+        A sound estimate shorter than the prior (Strecha's 1,368 px against a prior of 1,843 px, the
+        truth 1,380) is not applied: with it, SARA's AUC@1 fell on four of six Strecha scenes and
+        stand-ins and exhaustive matching's moved both ways (docs/ACCURACY.md 19.2). It still tells the
+        field of view (`field_of_view_deg`).
+        """
+        return self.focal_px >= LONGER_THAN_PRIOR * prior_px
+
+
+def field_of_view_deg(focal_px: float, width: int, height: int) -> float:
+    """The angle the larger image side spans at this focal length (pinhole, degrees)."""
+    return float(np.degrees(2.0 * np.arctan(max(width, height) / (2.0 * focal_px))))
 
 
 def nearby_pairs(names: list[str], max_pairs: int = MAX_PAIRS) -> list[tuple[str, str]]:
@@ -84,10 +120,17 @@ def estimate(fundamentals: list[np.ndarray], width: int, height: int, prior_px: 
     if len(fundamentals) < MIN_PAIRS:
         return None
     side = max(width, height)
-    focals = np.append(GRID * side, prior_px)
-    median = np.median(focal_costs(fundamentals, focals, (width / 2.0, height / 2.0)), axis=1)
-    best = int(np.argmin(median[:-1]))
-    return FocalEstimate(float(focals[best]), len(fundamentals), float(median[best]), float(median[-1]))
+    grid = GRID * side
+    costs = focal_costs(fundamentals, grid, (width / 2.0, height / 2.0))  # (len(grid), pairs)
+    median = np.median(costs, axis=1)
+    best = int(np.argmin(median))
+    found = float(grid[best])
+    at_prior, below = (float(np.median(c)) for c in focal_costs(
+        fundamentals, np.array([prior_px, found / SHARPNESS_STEP]), (width / 2.0, height / 2.0)))
+    own = grid[np.argmin(costs, axis=0)]
+    agreement = float(np.mean(np.abs(np.log(own / found)) <= np.log(AGREEMENT_STEP)))
+    return FocalEstimate(found, len(fundamentals), float(median[best]), at_prior,
+                         sharpness=below / max(float(median[best]), 1e-300), agreement=agreement)
 
 
 def estimate_from_features(features_path: Path, names: list[str], width: int, height: int,

@@ -21,8 +21,8 @@ pairs (by name). The scorer therefore also counts ``num_inliers_all``: the mutua
 among *all* M keypoints that fit the pose RANSAC found (the same error threshold). It does not
 saturate, and it ranks pairs by how many matches a full matching verifies better than
 ``num_inliers`` does (docs/ACCURACY.md, section 16). The spanning tree can use it
-(`ScoreConfig.tree_overlap`, off by default: trees of the most overlapping pairs have short
-baselines, which long lenses pay for).
+(`ScoreConfig.tree_overlap`; by default only where the field of view is known to be wide: trees of
+the most overlapping pairs have short baselines, which long lenses pay for).
 
 Frames: ``R, t`` is ``cam1_from_cam0`` (``x_cam1 = R x_cam0 + t``); normalised camera
 coordinates are ``(x / z, y / z)`` of the point in the camera frame (undistorted).
@@ -130,6 +130,8 @@ def tree_weights(scores: PairScores, conf: ScoreConfig) -> np.ndarray:
     weight = np.asarray(scores.weight, dtype=np.float64)
     if conf.tree_overlap == "best":
         return weight
+    if conf.tree_overlap != "all":  # "auto" is resolved by the pair source (it needs the cameras)
+        raise ValueError(f"tree_overlap must be 'best' or 'all' here, got {conf.tree_overlap!r}")
     inliers = np.maximum(scores.num_inliers, 1)
     return weight * (np.maximum(scores.num_inliers_all, inliers) / inliers) ** conf.alpha
 
