@@ -103,8 +103,11 @@ def _score(ctx: PairContext, candidates: list[Pair]) -> scoring.PairScores:
 
 
 #: a known field of view at least this wide (degrees, across the larger image side) makes the
-#: spanning tree of the most overlapping pairs (`score.tree_overlap=auto`); see `resolve_tree_overlap`
-WIDE_FIELD_OF_VIEW_DEG = 40.0
+#: spanning tree of the most overlapping pairs (`score.tree_overlap=auto`; see `resolve_tree_overlap`).
+#: Measured (docs/ACCURACY.md 19): at 31-33 degrees (half-size centre crops of Strecha scenes) and
+#: at 58 that tree gains or both pass; at 27 (bm-moldGoldCape) it costs 0.004 AUC@1, at 16 (quarter
+#: crops) 0.16-0.40
+WIDE_FIELD_OF_VIEW_DEG = 30.0
 
 
 def resolve_tree_overlap(ctx: PairContext) -> tuple[str, float | None]:

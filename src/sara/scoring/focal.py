@@ -83,7 +83,7 @@ class FocalEstimate:
         """Whether this estimate should replace COLMAP's prior of `prior_px`: only when much longer.
 
         A sound estimate shorter than the prior (Strecha's 1,368 px against a prior of 1,843 px, the
-        truth 1,380) is not applied: with it, SARA's AUC@1 fell on four of six Strecha scenes and
+        truth 1,380) is not applied: with it, SARA's AUC@1 fell on four of seven Strecha scenes and
         stand-ins and exhaustive matching's moved both ways (docs/ACCURACY.md 19.2). It still tells the
         field of view (`field_of_view_deg`).
         """
