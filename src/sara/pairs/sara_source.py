@@ -19,11 +19,12 @@ from typing import Any
 
 import numpy as np
 
-from .. import colmap, retrieval, scoring, selection
+from .. import colmap, extract, retrieval, scoring, selection
 from ..descriptors import top_k_cosine
 from ..io import fingerprint, records
 from ..io.pairs import Pair
 from ..io.scores import concat_scores, read_scores_csv, write_scores_csv
+from ..scoring import focal
 from . import PairContext, PairResult, pose_guided
 from .repair import left_out_views, repair_pairs
 from .support import support_pairs, view_inliers
@@ -133,9 +134,6 @@ def known_field_of_view(db_path: Path, names: list[str]) -> float | None:
     focal length is known: from EXIF or `extract.camera_params` (the camera's prior focal length),
     or a sound estimate from the images (`sara.scoring.focal`, the extract stage's record). None
     when it is known for fewer than half of them."""
-    from .. import extract
-    from ..scoring import focal
-
     cameras = colmap.cameras_by_image(db_path)
     estimate = records.done_info(db_path.parent, extract.STAGE).get("focal") or {}
     estimated = estimate.get("estimated_px") if estimate.get("sound") else None
