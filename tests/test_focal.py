@@ -179,3 +179,22 @@ def test_a_turntable_gives_no_sound_estimate(tmp_path: Path):
     names = sorted(p.name for p in images.iterdir())
     assert known_field_of_view(tmp_path / "out" / "database.db", names) is None
     assert resolve_tree_overlap(_pair_context(tmp_path / "out", names)) == ("best", None)
+
+
+def test_an_exif_focal_length_tells_the_field_of_view(tmp_path: Path):
+    """Photos with EXIF (a 32 mm equivalent focal length: 59 degrees across the larger side) need
+    no estimate: COLMAP's prior focal length comes from EXIF, and the tree ranks by all matches."""
+    scene = scene_dir("strecha-fountain-P11")
+    images = tmp_path / "images"
+    images.mkdir()
+    for path in sorted((scene / "images").iterdir())[:4]:
+        with Image.open(path) as im:
+            exif = Image.Exif()
+            exif[0x010F], exif[0x0110] = "Make", "Model"
+            exif.get_ifd(0x8769)[0xA405] = 32  # FocalLengthIn35mmFilm
+            im.resize((im.width // 4, im.height // 4), Image.LANCZOS).save(images / path.name, exif=exif)
+    assert _extract_focal(images, tmp_path / "out") is None  # no estimate: EXIF gave the focal length
+    names = sorted(p.name for p in images.iterdir())
+    fov = known_field_of_view(tmp_path / "out" / "database.db", names)
+    assert fov == pytest.approx(np.degrees(2 * np.arctan(18 / 32)), abs=0.5)
+    assert resolve_tree_overlap(_pair_context(tmp_path / "out", names)) == ("all", fov)
