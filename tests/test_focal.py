@@ -161,7 +161,7 @@ def test_quarter_size_frames_of_a_wide_lens_give_a_sound_estimate(tmp_path: Path
     fov = known_field_of_view(tmp_path / "out" / "database.db", names)
     assert 55 < fov < 70
     assert resolve_tree_overlap(_pair_context(tmp_path / "out", names)) == ("all", fov)
-    assert resolve_tree_overlap(_pair_context(tmp_path / "out", names, "best")) == ("best", None)
+    assert resolve_tree_overlap(_pair_context(tmp_path / "out", names, "best")) == ("best", fov)
     # known focal lengths (camera_params: COLMAP's prior focal length) count as well: a long lens
     out = tmp_path / "known"
     _extract_focal(images, out, camera_params="1380,192,128,0")
@@ -179,6 +179,7 @@ def test_a_turntable_gives_no_sound_estimate(tmp_path: Path):
     names = sorted(p.name for p in images.iterdir())
     assert known_field_of_view(tmp_path / "out" / "database.db", names) is None
     assert resolve_tree_overlap(_pair_context(tmp_path / "out", names)) == ("best", None)
+    assert resolve_tree_overlap(_pair_context(tmp_path / "out", names, "all")) == ("all", None)
 
 
 def test_an_exif_focal_length_tells_the_field_of_view(tmp_path: Path):

@@ -117,6 +117,9 @@ def test_weakly_matched_views_get_pairs_before_the_first_mapping(tmp_path: Path,
     assert pairs["fraction_of_exhaustive"] == pytest.approx(len(lines) / 45)
     assert f"{len(lines)} pairs ({100 * len(lines) / 45:.1f}% of exhaustive)" in (out / "report.md").read_text()
     assert "added before mapping" in (out / "report.md").read_text()
+    # the report says how the spanning tree was ranked, and why
+    tree = "the inliers among all matches" if pairs["tree_overlap"] == "all" else "the paper's weight"
+    assert f"spanning tree by {tree} (" in (out / "report.md").read_text()
     assert report.metrics["num_registered"] == 10
     caplog.clear()
     again = run(conf, images, out, gt_dir=gt, progress=False)

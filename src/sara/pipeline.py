@@ -769,6 +769,18 @@ def share_features(features_dir: Path, out_dir: Path) -> bool:
 # ---------------------------------------------------------------------------------------------
 
 
+def _tree_note(pairs_info: dict[str, Any]) -> str:
+    """How the SARA selection ranked its spanning tree, for the report ('' for other sources)."""
+    tree = pairs_info.get("tree_overlap")
+    if tree is None:
+        return ""
+    fov = pairs_info.get("field_of_view_deg")
+    view = f"{fov:.0f}-degree field of view" if fov is not None else "field of view unknown"
+    rank = "the inliers among all matches" if tree == "all" else "the paper's weight"
+    how = "" if pairs_info.get("tree_overlap_setting", "auto") == "auto" else ", as set by score.tree_overlap"
+    return f"; spanning tree by {rank} ({view}{how})"
+
+
 def render_report(report: RunReport) -> str:
     """A short human-readable summary of a run (Markdown)."""
     s = report.stages
@@ -780,7 +792,7 @@ def render_report(report: RunReport) -> str:
         [f"pairs ({pr.get('method')})", f"{pr.get('time_s', 0):.1f}",
          f"{pr.get('num_pairs', 0)} pairs ({100 * pr.get('fraction_of_exhaustive', 0):.1f}% of exhaustive)"
          + (f", {before} of them added before mapping for weakly matched views" if before else "")
-         + (f", {added} of them added after mapping" if added else "")],
+         + (f", {added} of them added after mapping" if added else "") + _tree_note(pr)],
         [f"match ({ma.get('matcher', '')})", f"{ma.get('time_s', 0):.1f}",
          f"{ma.get('num_verified_pairs', 0)} verified pairs, "
          f"{ma.get('inlier_matches_per_pair_mean', 0):.0f} inlier matches per pair"],

@@ -85,6 +85,7 @@ def select(ctx: PairContext) -> PairResult:
         "rejected": _count(r for r in scores.reason if r),
         "num_rescued": rescued,
         "tree_overlap": tree_overlap,
+        "tree_overlap_setting": ctx.conf.score.tree_overlap,
         "field_of_view_deg": field_of_view,
         "graph": chosen_graph.stats(),
         "selected_components": _component_sizes(labels),
@@ -112,8 +113,8 @@ WIDE_FIELD_OF_VIEW_DEG = 30.0
 
 
 def resolve_tree_overlap(ctx: PairContext) -> tuple[str, float | None]:
-    """The overlap the spanning tree ranks by (`ScoreConfig.tree_overlap`), and the field of view
-    it was chosen by (None where unknown).
+    """The overlap the spanning tree ranks by (`ScoreConfig.tree_overlap`), and the images' known
+    field of view (None where unknown).
 
     ``auto`` takes ``all`` (the inliers among all mutual matches: trees of the nearest, most
     overlapping views) when the images' field of view is known and at least WIDE_FIELD_OF_VIEW_DEG,
@@ -123,9 +124,9 @@ def resolve_tree_overlap(ctx: PairContext) -> tuple[str, float | None]:
     AUC@1 on long-lens crops (docs/ACCURACY.md 16.3, 19).
     """
     mode = ctx.conf.score.tree_overlap
-    if mode != "auto":
-        return mode, None
     fov = known_field_of_view(ctx.db_path, ctx.names)
+    if mode != "auto":
+        return mode, fov
     return ("all" if fov is not None and fov >= WIDE_FIELD_OF_VIEW_DEG else "best"), fov
 
 
