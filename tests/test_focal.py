@@ -162,6 +162,16 @@ def test_quarter_size_frames_of_a_wide_lens_give_a_sound_estimate(tmp_path: Path
     assert 55 < fov < 70
     assert resolve_tree_overlap(_pair_context(tmp_path / "out", names)) == ("all", fov)
     assert resolve_tree_overlap(_pair_context(tmp_path / "out", names, "best")) == ("best", fov)
+    # features extracted before soundness was recorded: estimated again, the same choice
+    import json
+    record_path = tmp_path / "out" / ".sara" / "extract.json"
+    record = json.loads(record_path.read_text())
+    for key in ("sound", "sharpness", "agreement"):
+        del record["info"]["focal"][key]
+    record_path.write_text(json.dumps(record))
+    features = next((tmp_path / "out").glob("features-*.h5"))
+    assert known_field_of_view(tmp_path / "out" / "database.db", names) is None
+    assert known_field_of_view(tmp_path / "out" / "database.db", names, features) == pytest.approx(fov)
     # known focal lengths (camera_params: COLMAP's prior focal length) count as well: a long lens
     out = tmp_path / "known"
     _extract_focal(images, out, camera_params="1380,192,128,0")

@@ -124,19 +124,24 @@ def resolve_tree_overlap(ctx: PairContext) -> tuple[str, float | None]:
     AUC@1 on long-lens crops (docs/ACCURACY.md 16.3, 19).
     """
     mode = ctx.conf.score.tree_overlap
-    fov = known_field_of_view(ctx.db_path, ctx.names)
+    fov = known_field_of_view(ctx.db_path, ctx.names, ctx.features_path)
     if mode != "auto":
         return mode, fov
     return ("all" if fov is not None and fov >= WIDE_FIELD_OF_VIEW_DEG else "best"), fov
 
 
-def known_field_of_view(db_path: Path, names: list[str]) -> float | None:
+def known_field_of_view(db_path: Path, names: list[str], features_path: Path | None = None) -> float | None:
     """The median field of view (degrees, larger image side) of `names`, over the images whose
     focal length is known: from EXIF or `extract.camera_params` (the camera's prior focal length),
     or a sound estimate from the images (`sara.scoring.focal`, the extract stage's record). None
-    when it is known for fewer than half of them."""
+    when it is known for fewer than half of them.
+
+    Features extracted by sara 0.1 before the estimate's soundness was recorded get it estimated
+    again from `features_path` (a few seconds), so a resumed run chooses as a new one does."""
     cameras = colmap.cameras_by_image(db_path)
     estimate = records.done_info(db_path.parent, extract.STAGE).get("focal") or {}
+    if estimate.get("estimated_px") and "sound" not in estimate and features_path is not None:
+        estimate = _estimate_again(db_path, features_path, names, estimate) or {}
     estimated = estimate.get("estimated_px") if estimate.get("sound") else None
     fovs = []
     for name in names:
@@ -150,6 +155,15 @@ def known_field_of_view(db_path: Path, names: list[str]) -> float | None:
     if not names or 2 * len(fovs) < len(names):
         return None
     return float(np.median(fovs))
+
+
+def _estimate_again(db_path: Path, features_path: Path, names: list[str], recorded: dict) -> dict | None:
+    camera = colmap.shared_camera(db_path)
+    if camera is None or not Path(features_path).is_file():
+        return None
+    found = focal.estimate_from_features(Path(features_path), names, camera.width, camera.height,
+                                         float(recorded.get("prior_px") or camera.mean_focal_length()))
+    return {"estimated_px": found.focal_px, "sound": found.sound} if found is not None else None
 
 
 def _choose(num_images: int, edges: np.ndarray, scores: scoring.PairScores, conf: Any):
