@@ -220,8 +220,9 @@ def select_pairs(conf: PipelineConfig, images: ImageSet, features_path: Path, ou
         shutil.rmtree(staging, ignore_errors=True)
     write_pairs(pairs_path, pairs)
     n = len(images.names)
+    exhaustive = n * (n - 1) // 2
     info.update(method=method, num_pairs=len(pairs), num_selected=len(pairs), time_s=time.perf_counter() - tic,
-                num_exhaustive_pairs=n * (n - 1) // 2, fraction_of_exhaustive=len(pairs) / max(1, n * (n - 1) // 2))
+                num_exhaustive_pairs=exhaustive, fraction_of_exhaustive=len(pairs) / max(1, exhaustive))
     outputs = {name: file_digest(out_dir / name) for name in [PAIRS_NAME, *produced] if name in _TRACKED_PAIR_FILES}
     records.mark_done(out_dir, PAIRS_STAGE, key, info, outputs=outputs)
     return pairs_path

@@ -141,7 +141,7 @@ def known_field_of_view(db_path: Path, names: list[str], features_path: Path | N
     cameras = colmap.cameras_by_image(db_path)
     estimate = records.done_info(db_path.parent, extract.STAGE).get("focal") or {}
     if estimate.get("estimated_px") and "sound" not in estimate and features_path is not None:
-        estimate = _estimate_again(db_path, features_path, names, estimate) or {}
+        estimate = _estimate_again(cameras, features_path, names, estimate) or {}
     estimated = estimate.get("estimated_px") if estimate.get("sound") else None
     fovs = []
     for name in names:
@@ -157,10 +157,12 @@ def known_field_of_view(db_path: Path, names: list[str], features_path: Path | N
     return float(np.median(fovs))
 
 
-def _estimate_again(db_path: Path, features_path: Path, names: list[str], recorded: dict) -> dict | None:
-    camera = colmap.shared_camera(db_path)
-    if camera is None or not Path(features_path).is_file():
+def _estimate_again(cameras: dict[str, Any], features_path: Path, names: list[str], recorded: dict) -> dict | None:
+    """The focal estimate's length and soundness, from the features, for one camera shared by all images."""
+    shared = {camera.camera_id: camera for camera in cameras.values()}
+    if len(shared) != 1 or not Path(features_path).is_file():
         return None
+    camera = next(iter(shared.values()))
     found = focal.estimate_from_features(Path(features_path), names, camera.width, camera.height,
                                          float(recorded.get("prior_px") or camera.mean_focal_length()))
     return {"estimated_px": found.focal_px, "sound": found.sound} if found is not None else None
