@@ -16,6 +16,7 @@ from sara.colmap.refine import (
     extend_tracks,
     read_geometry,
     track_distance_threshold,
+    track_sizes,
     triangulate_and_adjust,
 )
 from sara.config import make_config
@@ -275,6 +276,56 @@ def test_extension_takes_its_descriptor_threshold_from_tracks_that_spread_more_t
     assert extend_tracks(rec, features, wide) == 0
 
 
+def _set_scales(rec: pycolmap.Reconstruction, path: Path, *, seed: int, spread: float = 0.05) -> None:
+    """Scores of `path` become SIFT-like scales: each 3D point has a size in the scene, and its
+    keypoints the scale that size has at their depth (focal / depth), within `spread` (log)."""
+    rng = np.random.default_rng(seed)
+    size = {pid: rng.uniform(0.005, 0.05) for pid in rec.point3D_ids()}
+    with h5py.File(path, "r+") as h5:
+        for image in rec.images.values():
+            focal = rec.cameras[image.camera_id].mean_focal_length()
+            scale = rng.uniform(1.0, 8.0, size=image.num_points2D())
+            for k, p in enumerate(image.points2D):
+                if p.has_point3D():
+                    depth = (image.cam_from_world() * rec.points3D[p.point3D_id].xyz)[2]
+                    scale[k] = size[p.point3D_id] * focal / depth * np.exp(spread * rng.normal())
+            h5[image.name]["scores"][...] = scale.astype(np.float32)
+
+
+def test_extension_turns_away_keypoints_whose_scale_does_not_fit_the_track(model: Path, tmp_path: Path):
+    """With the scale test, a removed observation comes back on a keypoint of the track's size in
+    the scene, and not when its scale is three times that; without it, it comes back either way."""
+    full = pycolmap.Reconstruction(str(model / "sparse" / "0"))
+    features = _features_of(full, tmp_path / "f.h5")
+    _set_scales(full, features, seed=4)
+    scaled = TrackExtension(max_view_angle_deg=180.0, scale_quantile=0.99)
+    rec = pycolmap.Reconstruction(str(model / "sparse" / "0"))
+    removed = _remove_two_per_track(rec, seed=5)
+    added = extend_tracks(rec, features, scaled)
+    found = {(e.image_id, e.point2D_idx, pid) for pid in rec.point3D_ids() for e in rec.points3D[pid].track.elements}
+    assert added >= 0.95 * len(removed) and len(removed & found) == added
+
+    with h5py.File(features, "r+") as h5:  # the removed keypoints three times their size
+        for image_id, idx, _ in removed:
+            h5[rec.images[image_id].name]["scores"][idx] *= 3.0
+    rec = pycolmap.Reconstruction(str(model / "sparse" / "0"))
+    _remove_two_per_track(rec, seed=5)
+    assert extend_tracks(rec, features, scaled) == 0
+    rec = pycolmap.Reconstruction(str(model / "sparse" / "0"))
+    _remove_two_per_track(rec, seed=5)
+    assert extend_tracks(rec, features, TrackExtension(max_view_angle_deg=180.0)) == len(removed)
+
+
+def test_track_sizes_are_medians_and_a_quantile_of_the_distance_to_them():
+    # track 0: 0, 1, 3 (median 1; distances 1, 0, 2); track 1: 2, 4 (median 3; 1, 1); track 2: one, left out
+    o_size = np.array([3.0, 0.0, 1.0, 4.0, 2.0, 7.0])
+    start, count = np.array([0, 3, 5]), np.array([3, 2, 1])
+    median, tol = track_sizes(o_size, start, count, 1.0)
+    assert median == pytest.approx([1.0, 3.0, 7.0]) and tol == pytest.approx(2.0)
+    assert track_sizes(o_size, start, count, 0.5)[1] == pytest.approx(1.0)
+    assert track_sizes(np.array([5.0]), np.array([0]), np.array([1]), 0.99)[1] == np.inf  # no track of two
+
+
 def test_track_distance_threshold_is_a_quantile_of_each_observations_nearest_in_its_track():
     # track 0: three unit vectors, nearest distances 0 (two equal) and sqrt(2); track 1: two at distance 2
     desc = np.array([[1, 0], [1, 0], [0, 1], [1, 0], [-1, 0]], dtype=np.float32)
@@ -328,3 +379,10 @@ def test_a_view_whose_features_do_not_fit_the_model_is_left_out_of_the_extension
     assert added == sum(1 for image_id, _, _ in removed if image_id != odd) > 0
     assert {r for r in removed if r[0] != odd} <= found
     assert not {r for r in removed if r[0] == odd} & found  # the odd view gets nothing back
+
+
+def test_the_scale_test_is_on_only_for_features_whose_scores_are_scales():
+    graph = make_config().graph
+    assert round_._extension(graph, "sift").scale_quantile == graph.extend_tracks_scale_quantile > 0
+    for backend in ("aliked-n16", "disk", "xfeat"):  # their scores are detection scores
+        assert round_._extension(graph, backend).scale_quantile == 0.0

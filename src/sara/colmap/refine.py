@@ -138,6 +138,11 @@ class TrackExtension:
     0.31-0.36 on the six shared scenes), so for SIFT the threshold is 0.7. Learned descriptors spread
     more (ALIKED, DISK: 1.03-1.09 on bm-moldGoldCape), and at 0.7 the extension added half the
     observations there that it adds with their own threshold (docs/ACCURACY.md 17.3).
+
+    With `scale_quantile` (for features whose scores are keypoint scales, SIFT's), the keypoint's
+    size in the scene, scale x depth / focal length, must also be within that quantile of the
+    tracks' own spread from their median size (`track_sizes`): a keypoint of another scale at the
+    projection is another feature (docs/ACCURACY.md 20).
     """
 
     radius_px: float = 1.5
@@ -145,6 +150,8 @@ class TrackExtension:
     max_ratio: float = 0.8
     track_distance_quantile: float = 0.99
     max_view_angle_deg: float = 45.0
+    #: the scale test's quantile; 0: not tested (the scores are not scales)
+    scale_quantile: float = 0.0
     #: larger models are left as they are: observation descriptor values held in memory (float32,
     #: one array: 2 GiB)
     max_values: int = 2**29
@@ -196,6 +203,7 @@ def extend_tracks(rec: pycolmap.Reconstruction, features_path: Path,
             return 0
         # the descriptors in point order, written once (no copy of a large array)
         o_desc = np.zeros((len(obs_point), dim), np.float32)
+        o_size = np.zeros(len(obs_point), np.float64)  # log(scale * depth / focal)
         usable = np.zeros(len(views), bool)
         for v, iid in enumerate(views):
             feats = cache.get(rec.images[iid].name)
@@ -204,12 +212,23 @@ def extend_tracks(rec: pycolmap.Reconstruction, features_path: Path,
             usable[v] = True
             here = by_view[view_start[v]:view_start[v + 1]]
             o_desc[position[here]] = _unit(feats.descriptors[obs_idx[here]])
+            if ext.scale_quantile > 0:
+                image = rec.images[iid]
+                pose = image.cam_from_world()
+                depth = xyz[obs_point[here]] @ pose.rotation.matrix()[2] + pose.translation[2]
+                focal = rec.cameras[image.camera_id].mean_focal_length()
+                scale = np.asarray(feats.scores, np.float64)[obs_idx[here]]
+                o_size[position[here]] = np.log(np.maximum(scale, 1e-6) * np.maximum(depth, 1e-9) / focal)
         o_point, o_view = obs_point[order], obs_view[order]
         if not usable.all():  # observations whose descriptors are unknown leave the tracks' lists
             known = usable[o_view]
-            o_point, o_view, o_desc = o_point[known], o_view[known], o_desc[known]
+            o_point, o_view, o_desc, o_size = o_point[known], o_view[known], o_desc[known], o_size[known]
         count = np.bincount(o_point, minlength=len(point_ids))
         start = np.concatenate([[0], np.cumsum(count)[:-1]])
+        size, size_tol = None, np.inf
+        if ext.scale_quantile > 0:
+            size, size_tol = track_sizes(o_size, start, count, ext.scale_quantile)
+            logger.info("track extension: keypoint scales within %.2fx of the track's", np.exp(size_tol))
         o_dir = xyz[o_point] - centers[o_view]
         o_dir /= np.linalg.norm(o_dir, axis=1, keepdims=True)
         cos_max = np.cos(np.radians(ext.max_view_angle_deg))
@@ -244,8 +263,25 @@ def extend_tracks(rec: pycolmap.Reconstruction, features_path: Path,
                                 projected)
                     break
             added += _extend_view(rec, iid, cache.get(rec.images[iid].name), point_ids, xyz, centers[v], candidate,
-                                  o_dir, o_desc, start, count, cos_max, ext)
+                                  o_dir, o_desc, start, count, cos_max, ext, size, size_tol)
     return added
+
+
+def track_sizes(o_size: np.ndarray, start: np.ndarray, count: np.ndarray, quantile: float):
+    """Each track's median log size (keypoint scale x depth / focal) and the `quantile` of an
+    observation's distance to its track's median, over tracks of two or more observations."""
+    point = np.repeat(np.arange(len(count)), count)
+    median = np.full(len(count), np.nan)
+    order = np.lexsort((o_size, point))
+    sorted_size = o_size[order]
+    has = count > 0
+    lo = start[has] + (count[has] - 1) // 2
+    hi = start[has] + count[has] // 2
+    median[has] = 0.5 * (sorted_size[lo] + sorted_size[hi])
+    multi = count[point] >= 2
+    if not multi.any():
+        return median, np.inf
+    return median, float(np.quantile(np.abs(o_size[multi] - median[point[multi]]), quantile))
 
 
 def _incidence(view: np.ndarray, point: np.ndarray, num_views: int, num_points: int):
@@ -295,7 +331,8 @@ def _unit(desc: np.ndarray) -> np.ndarray:
 
 def _extend_view(rec: pycolmap.Reconstruction, iid: int, feats, point_ids: np.ndarray, xyz: np.ndarray,
                  center: np.ndarray, candidate: np.ndarray, o_dir: np.ndarray, o_desc: np.ndarray,
-                 start: np.ndarray, count: np.ndarray, cos_max: float, ext: TrackExtension) -> int:
+                 start: np.ndarray, count: np.ndarray, cos_max: float, ext: TrackExtension,
+                 size: np.ndarray | None = None, size_tol: float = np.inf) -> int:
     """`extend_tracks` for one view: returns the observations added to it."""
     image = rec.images[iid]
     camera = rec.cameras[image.camera_id]
@@ -308,7 +345,7 @@ def _extend_view(rec: pycolmap.Reconstruction, iid: int, feats, point_ids: np.nd
     uv = np.asarray(camera.img_from_cam(in_cam), dtype=np.float64).reshape(-1, 2)
     inside = np.isfinite(uv).all(1) & (uv[:, 0] >= 0) & (uv[:, 1] >= 0) & (uv[:, 0] < camera.width) \
         & (uv[:, 1] < camera.height)
-    idx, uv = idx[inside], uv[inside]
+    idx, uv, in_cam = idx[inside], uv[inside], in_cam[inside]
     if len(idx) == 0:
         return 0
     ray = xyz[idx] - center
@@ -345,6 +382,12 @@ def _extend_view(rec: pycolmap.Reconstruction, iid: int, feats, point_ids: np.nd
     d1 = best_d[np.arange(len(cand_rows)), first]
     d2 = best_d[np.arange(len(cand_rows)), 1 - first]
     accept = (d1 <= ext.max_distance) & ((~np.isfinite(d2)) | (d1 < ext.max_ratio * d2))
+    if size is not None:
+        kp_first = free[nn[np.arange(len(cand_rows)), first].clip(0, len(free) - 1)]
+        depth = in_cam[cand_rows, 2]
+        got = np.log(np.maximum(np.asarray(feats.scores, np.float64)[kp_first], 1e-6) * depth
+                     / camera.mean_focal_length())
+        accept &= np.abs(got - size[idx[cand_rows]]) <= size_tol
     if not accept.any():
         return 0
     keypoint = free[nn[np.arange(len(cand_rows)), first][accept]]

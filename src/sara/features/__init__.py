@@ -81,6 +81,16 @@ def make_backend(conf: ExtractConfig) -> LocalFeatures:
     return BACKENDS.get(conf.backend)(conf)
 
 
+#: backends whose `scores` are each keypoint's scale in pixels (SIFT), not a detection score
+SCALE_SCORES = frozenset({"sift"})
+
+
+def scores_are_scales(backend: str) -> bool:
+    """Whether the features of `backend` carry each keypoint's scale as its score (the track
+    extension then also tests scales, `sara.colmap.refine.TrackExtension.scale_quantile`)."""
+    return backend in SCALE_SCORES
+
+
 def features_file_name(conf: ExtractConfig) -> str:
     """`features-<backend>.h5`: switching backends never reuses or overwrites another's file."""
     return f"features-{conf.backend}.h5"

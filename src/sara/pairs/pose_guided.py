@@ -27,6 +27,7 @@ import numpy as np
 
 from .. import colmap
 from ..colmap import refine as colmap_refine
+from ..features import scores_are_scales
 from ..io import fingerprint, records
 from ..io.pairs import Pair
 from ..selection import pose_guided
@@ -154,7 +155,7 @@ def refine(ctx: PairContext, extra: list[Pair], db_path: Path, model_dir: Path,
         return None
     tic = time.perf_counter()
     graph = ctx.conf.graph
-    extension = _extension(graph)
+    extension = _extension(graph, ctx.conf.extract.backend)
     counts = colmap_refine.triangulate_and_adjust(model_dir, db_path, ctx.images_root, out_dir,
                                                   num_threads=ctx.conf.map.num_threads, seed=ctx.conf.seed,
                                                   features_path=ctx.features_path,
@@ -165,9 +166,11 @@ def refine(ctx: PairContext, extra: list[Pair], db_path: Path, model_dir: Path,
     return {"time_s": elapsed, **counts}
 
 
-def _extension(graph: Any) -> colmap_refine.TrackExtension:
-    return colmap_refine.TrackExtension(radius_px=graph.extend_tracks_radius_px,
-                                        max_view_angle_deg=graph.pose_guided_max_view_angle_deg)
+def _extension(graph: Any, backend: str) -> colmap_refine.TrackExtension:
+    """The track extension of `graph`; the scale test only where `backend`'s scores are scales."""
+    return colmap_refine.TrackExtension(
+        radius_px=graph.extend_tracks_radius_px, max_view_angle_deg=graph.pose_guided_max_view_angle_deg,
+        scale_quantile=graph.extend_tracks_scale_quantile if scores_are_scales(backend) else 0.0)
 
 
 def finish(ctx: PairContext, model_dir: Path, out_dir: Path, *, refined: bool) -> dict[str, Any] | None:
@@ -178,7 +181,8 @@ def finish(ctx: PairContext, model_dir: Path, out_dir: Path, *, refined: bool) -
     if refined or not graph.extend_tracks or not colmap.has_model(model_dir):
         return None
     tic = time.perf_counter()
-    counts = colmap_refine.extend_and_adjust(model_dir, out_dir, ctx.features_path, _extension(graph))
+    counts = colmap_refine.extend_and_adjust(model_dir, out_dir, ctx.features_path,
+                                             _extension(graph, ctx.conf.extract.backend))
     elapsed = time.perf_counter() - tic
     logger.info("final model: %d observations added to tracks, bundle-adjusted in %.1f s",
                 counts["observations_added"], elapsed)
