@@ -249,7 +249,7 @@ class GraphConfig:
     extend_tracks_scale_quantile: float = 0.995
     """Where the keypoints carry their scale (SIFT), a keypoint joins a track only if its size in
     the scene (scale x depth / focal length) is within this quantile of the model's own tracks'
-    spread around their median (about 1.4x on the six shared scenes). 0: not tested. Measured
+    spread around their median (1.38-1.52x on the six shared scenes). 0: not tested. Measured
     against no test (docs/ACCURACY.md 20): AUC@1 +0.004 on bm-moldGoldCape, now above exhaustive's,
     and 0 to +0.0034 on the other five; neutral on half-size stand-ins, where 0.98 and 0.99 lose
     up to 0.006; -0.002 to -0.004 on two 25-degree crops."""
