@@ -217,8 +217,7 @@ def extend_tracks(rec: pycolmap.Reconstruction, features_path: Path,
                 pose = image.cam_from_world()
                 depth = xyz[obs_point[here]] @ pose.rotation.matrix()[2] + pose.translation[2]
                 focal = rec.cameras[image.camera_id].mean_focal_length()
-                scale = np.asarray(feats.scores, np.float64)[obs_idx[here]]
-                o_size[position[here]] = np.log(np.maximum(scale, 1e-6) * np.maximum(depth, 1e-9) / focal)
+                o_size[position[here]] = _log_size(feats.scores[obs_idx[here]], depth, focal)
         o_point, o_view = obs_point[order], obs_view[order]
         if not usable.all():  # observations whose descriptors are unknown leave the tracks' lists
             known = usable[o_view]
@@ -282,6 +281,11 @@ def track_sizes(o_size: np.ndarray, start: np.ndarray, count: np.ndarray, quanti
     if not multi.any():
         return median, np.inf
     return median, float(np.quantile(np.abs(o_size[multi] - median[point[multi]]), quantile))
+
+
+def _log_size(scale: np.ndarray, depth: np.ndarray, focal: float) -> np.ndarray:
+    """log(keypoint scale x depth / focal length): the keypoint's size in the scene (log units)."""
+    return np.log(np.maximum(np.asarray(scale, np.float64), 1e-6) * np.maximum(depth, 1e-9) / focal)
 
 
 def _incidence(view: np.ndarray, point: np.ndarray, num_views: int, num_points: int):
@@ -382,15 +386,14 @@ def _extend_view(rec: pycolmap.Reconstruction, iid: int, feats, point_ids: np.nd
     d1 = best_d[np.arange(len(cand_rows)), first]
     d2 = best_d[np.arange(len(cand_rows)), 1 - first]
     accept = (d1 <= ext.max_distance) & ((~np.isfinite(d2)) | (d1 < ext.max_ratio * d2))
+    chosen = nn[np.arange(len(cand_rows)), first]  # len(free) where no keypoint was found
     if size is not None:
-        kp_first = free[nn[np.arange(len(cand_rows)), first].clip(0, len(free) - 1)]
-        depth = in_cam[cand_rows, 2]
-        got = np.log(np.maximum(np.asarray(feats.scores, np.float64)[kp_first], 1e-6) * depth
-                     / camera.mean_focal_length())
+        got = _log_size(feats.scores[free[chosen.clip(0, len(free) - 1)]], in_cam[cand_rows, 2],
+                        camera.mean_focal_length())
         accept &= np.abs(got - size[idx[cand_rows]]) <= size_tol
     if not accept.any():
         return 0
-    keypoint = free[nn[np.arange(len(cand_rows)), first][accept]]
+    keypoint = free[chosen[accept]]
     point = idx[cand_rows[accept]]
     order = np.argsort(d1[accept], kind="stable")  # a keypoint claimed by several points: the closest wins
     _, once = np.unique(keypoint[order], return_index=True)
