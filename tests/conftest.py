@@ -1,6 +1,7 @@
 from __future__ import annotations
 
 import os
+import shutil
 from pathlib import Path
 
 import pytest
@@ -23,3 +24,32 @@ def synthetic_scene(tmp_path_factory):
     from sara.synthetic import make_scene
 
     return make_scene(tmp_path_factory.mktemp("synthetic"), num_images=10)
+
+
+@pytest.fixture(scope="session")
+def finished_run_template(tmp_path_factory, synthetic_scene) -> Path:
+    """One finished `sara run --gt` of the synthetic scene for the whole session, made through the
+    command line as a user makes it (report.html included). Read it, never write into it: a test
+    that changes a run takes `finished_run`, its own copy."""
+    from harness import run_redirected
+
+    images, gt = synthetic_scene
+    out = tmp_path_factory.mktemp("finished") / "out"
+    result = run_redirected("run", images, out, "-q", "--gt", gt)
+    assert result.code == 0, result.err
+    return out
+
+
+@pytest.fixture
+def finished_run(finished_run_template, tmp_path) -> Path:
+    """This test's own copy of the finished run (`tmp_path / "out"`), free to change or damage."""
+    return Path(shutil.copytree(finished_run_template, tmp_path / "out", symlinks=True))
+
+
+@pytest.fixture
+def run_cli(capfd):
+    """`run_cli(*args) -> CliResult(code, out, err)`: `sara ARGS` in this process through
+    `sara.cli.main`, its output captured at the file descriptors (native libraries' lines too)."""
+    from harness import run_in_process
+
+    return lambda *args: run_in_process(capfd, *args)

@@ -1,8 +1,7 @@
-"""The Python examples of README.md run as written.
+"""The Python examples of the docs run as written.
 
-Every ```python block of the sections "Use with 3DGS / nerfstudio / hloc / COLMAP" and "Python API"
+Every ```python block of the sections "hloc" (docs/interop.md) and "Python API" (docs/usage.md)
 runs, in order and in one namespace, in a folder holding `images/` and `gt/` of a synthetic scene.
-Until README.md has those sections, the drafts below (proposed for README.md) run instead.
 
 hloc is not installed here (it pulls CUDA torch), so the hloc example runs against a stand-in
 `hloc` package with the two functions it calls, mirroring hloc's signatures and file names
@@ -25,24 +24,24 @@ from pathlib import Path
 import pytest
 from test_hloc import match_mutual_nn, write_superpoint_like
 
-README = Path(__file__).resolve().parents[1] / "README.md"
-SECTIONS = ("Use with 3DGS / nerfstudio / hloc / COLMAP", "Python API")
+DOCS = [Path(__file__).resolve().parents[1] / "docs" / name for name in ("interop.md", "usage.md")]
+SECTIONS = ("hloc", "Python API")
 
 
 
 def python_blocks(markdown: str) -> list[str]:
-    """The ```python blocks of the README sections in SECTIONS, in order."""
+    """The ```python blocks of the sections in SECTIONS, in order."""
     blocks = []
     for title in SECTIONS:
         match = re.search(rf"^## {re.escape(title)}\n(.*?)(?=^## |\Z)", markdown, re.DOTALL | re.MULTILINE)
         if match is None:
-            raise AssertionError(f"README section {title!r} missing")
+            raise AssertionError(f"docs section {title!r} missing")
         blocks += re.findall(r"```python\n(.*?)```", match.group(1), re.DOTALL)
     return blocks
 
 
 def examples_source() -> str:
-    return README.read_text(encoding="utf-8")
+    return "\n".join(path.read_text(encoding="utf-8") for path in DOCS)
 
 
 def fake_hloc(gt_dir: Path) -> types.ModuleType:
@@ -83,7 +82,7 @@ def test_readme_python_examples_run(synthetic_scene, tmp_path: Path, monkeypatch
     assert len(blocks) >= 4
     namespace: dict = {"__name__": "readme"}
     for block in blocks:
-        exec(compile(block, "README.md", "exec"), namespace)  # noqa: S102 - the README's own examples
+        exec(compile(block, "docs", "exec"), namespace)  # noqa: S102 - the docs' own examples
 
     assert (tmp_path / "outputs" / "sfm" / "sparse" / "0" / "images.bin").exists()
     assert namespace["model_dir"] == Path("out/sparse/0") and (tmp_path / "out/sparse/0").is_dir()
@@ -97,6 +96,6 @@ def test_readme_python_examples_run(synthetic_scene, tmp_path: Path, monkeypatch
 
 
 def test_draft_has_the_sections():
-    assert len(python_blocks(examples_source())) == 4
+    assert len(python_blocks(examples_source())) == 5
     with pytest.raises(AssertionError, match="missing"):
         python_blocks("## Python API\n```python\npass\n```\n")

@@ -22,7 +22,7 @@ FLOORS = {
     "execute_ray": 3,
     "extract": 4, "match": 4, "mapping": 4, "pairs": 4, "gt_pairs": 4, "synthetic": 4,
     "pipeline": 5, "export": 5,
-    "report": 6, "hloc": 6, "scale": 6,
+    "report": 6, "hloc": 6,
     "bench": 7, "demo": 7,
     "cli": 8, "__main__": 9,
 }

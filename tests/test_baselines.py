@@ -84,12 +84,12 @@ def test_exhaustive_source_exact(tmp_path: Path):
 
 
 def test_sequential_source_exact(tmp_path: Path):
-    result = get_source("sequential")(context(tmp_path, names(10), {"pairs.sequential_overlap": "3"}))
+    result = get_source("sequential")(context(tmp_path, names(10), {"sequential.overlap": "3"}))
     # image i with i+1..i+3: 3 * 7 + 2 + 1
     assert len(result.pairs) == 24
     assert as_index_pairs(result.pairs) == {(i, j) for i in range(10) for j in range(i + 1, min(i + 4, 10))}
-    quadratic = get_source("sequential")(context(tmp_path, names(20), {"pairs.sequential_overlap": "3",
-                                                                       "pairs.sequential_quadratic": "true"}))
+    quadratic = get_source("sequential")(context(tmp_path, names(20), {"sequential.overlap": "3",
+                                                                       "sequential.quadratic": "true"}))
     # offsets 1, 2, 4 (2^k, k < 3): 19 + 18 + 16
     assert len(quadratic.pairs) == 53
     assert (0, 4) in as_index_pairs(quadratic.pairs) and (0, 3) not in as_index_pairs(quadratic.pairs)
@@ -137,8 +137,8 @@ def test_nearest_neighbours_exact():
 def test_sequential_loop_detection(tmp_path: Path):
     # groups: {0, 5}, {1, 2}, {3, 7}, {4, 6}; queries 0 and 4 (period 4) find 5 and 6
     write_collection(tmp_path, [0, 1, 1, 2, 3, 0, 3, 2])
-    ctx = context(tmp_path, names(8), {"pairs.sequential_overlap": "1", "pairs.sequential_loop_detection": "true",
-                                       "pairs.sequential_loop_period": "4", "pairs.sequential_loop_neighbors": "1",
+    ctx = context(tmp_path, names(8), {"sequential.overlap": "1", "sequential.loop_detection": "true",
+                                       "sequential.loop_period": "4", "sequential.loop_neighbors": "1",
                                        "retrieval.codebook_size": "16"})
     result = get_source("sequential")(ctx)
     assert as_index_pairs(result.pairs) == {(i, i + 1) for i in range(7)} | {(0, 5), (4, 6)}
@@ -161,7 +161,7 @@ def test_retrieval_only_finds_the_group_partner(three_pairs: Path, tmp_path: Pat
 
 
 def test_vocabtree_finds_the_group_partner_and_reuses_its_tree(three_pairs: Path, tmp_path: Path):
-    ctx = context(three_pairs, names(6), {"pairs.vocab_num_images": "2"})  # the query itself and one more
+    ctx = context(three_pairs, names(6), {"vocab_tree.num_images": "2"})  # the query itself and one more
     ctx.out_dir = tmp_path / "built"
     built = get_source("vocabtree")(ctx)
     assert as_index_pairs(built.pairs) == {(0, 3), (1, 4), (2, 5)}
@@ -170,7 +170,7 @@ def test_vocabtree_finds_the_group_partner_and_reuses_its_tree(three_pairs: Path
     assert tree.is_file() and built.info["tree_built"] is True
     again = get_source("vocabtree")(ctx)  # same inputs: the saved tree is reused, same pairs
     assert again.info["tree_built"] is False and again.pairs == built.pairs
-    loaded_ctx = context(three_pairs, names(6), {"pairs.vocab_num_images": "2", "pairs.vocab_tree_path": str(tree)})
+    loaded_ctx = context(three_pairs, names(6), {"vocab_tree.num_images": "2", "vocab_tree.path": str(tree)})
     loaded_ctx.out_dir = tmp_path / "loaded"
     loaded = get_source("vocabtree")(loaded_ctx)
     assert loaded.pairs == built.pairs and set(loaded.timings_s) == {"retrieve"}
@@ -178,7 +178,7 @@ def test_vocabtree_finds_the_group_partner_and_reuses_its_tree(three_pairs: Path
 
 
 def test_vocabtree_missing_tree_is_a_clear_error(three_pairs: Path, tmp_path: Path):
-    ctx = context(three_pairs, names(6), {"pairs.vocab_tree_path": str(tmp_path / "nope.bin")})
+    ctx = context(three_pairs, names(6), {"vocab_tree.path": str(tmp_path / "nope.bin")})
     with pytest.raises(FileNotFoundError, match="vocabulary tree not found"):
         get_source("vocabtree")(ctx)
 
@@ -195,7 +195,7 @@ def test_baseline_pairs_do_not_depend_on_saras_own_settings():
     from sara.config import make_config
     from sara.pipeline import pairs_key
 
-    changed = {"graph.max_pairs_per_image": 2.5, "score.min_inliers": 12}
+    changed = {"budget.max_pairs_per_image": 2.5, "score.min_inliers": 12}
     for method in ("exhaustive", "retrieval", "sequential"):
         base = make_config("sift-offline", {"pairs.method": method})
         assert pairs_key(base, "x", None) == pairs_key(make_config("sift-offline", {"pairs.method": method, **changed}), "x", None)

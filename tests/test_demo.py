@@ -11,3 +11,6 @@ def test_demo_small(tmp_path: Path):
     assert int(rows["pairs matched"][0]) <= int(rows["pairs matched"][1]) == 28
     assert float(rows["AUC@5"][0]) > 0.9
     assert (tmp_path / "demo" / "sara" / "sparse" / "0" / "images.bin").exists()
+    report_html = tmp_path / "demo" / "sara" / "report.html"
+    assert report_html.exists() and "<h2>View graph</h2>" in report_html.read_text(encoding="utf-8")
+    assert f"Report: {report_html}" in table

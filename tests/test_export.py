@@ -37,13 +37,10 @@ import pytest
 from PIL import Image
 
 from sara.colmap.model import Intrinsics, ModelData
-from sara.export import (
-    export,
-    flat_names,
-    nerfstudio_camera,
-    nerfstudio_transforms,
-    project_ini,
-)
+from sara.export import FORMATS, ExportJob, export
+from sara.export.colmap_project import project_ini
+from sara.export.common import flat_names
+from sara.export.nerfstudio import nerfstudio_camera, nerfstudio_transforms
 
 WIDTH, HEIGHT = 320, 240
 SUBFOLDER = "left"  # half the images live in a sub-folder, as with `sara run --recursive`
@@ -110,6 +107,32 @@ def test_unknown_format_and_unsafe_destination(run_dir: Path, tmp_path: Path):
         export(run_dir, run_dir, "3dgs")
     with pytest.raises(FileNotFoundError, match="no model 3"):
         export(run_dir, tmp_path / "dest", "3dgs", model_index=3)
+
+
+def test_a_new_format_is_one_function_and_one_registry_line(run_dir: Path, tmp_path: Path, capsys):
+    """A toy format, registered here and nowhere else, runs end to end through the command line."""
+    from sara.cli import build_parser, main
+    from sara.cli.parser import subcommands
+    from sara.colmap.model import read_model
+
+    def write_image_list(job: ExportJob) -> None:
+        """A list of the model's images in DEST/cameras.json."""
+        names = read_model(job.model_dir).names
+        (job.dest / "cameras.json").write_text(json.dumps({"images": names, "from": str(job.images_root)}))
+
+    FORMATS.register("toy", write_image_list)
+    try:
+        assert main(["export", str(run_dir), str(tmp_path / "toy"), "--format", "toy", "-q"]) == 0
+        export_help = " ".join(subcommands(build_parser())["export"].format_help().split())
+        assert "toy: a list of the model's images in DEST/cameras.json" in export_help
+        assert build_parser().parse_args(["run", "imgs", "out", "--export", "toy"]).export == "toy"
+    finally:
+        FORMATS.unregister("toy")
+    written = json.loads((tmp_path / "toy" / "cameras.json").read_text())
+    assert written["images"] == sorted(im.name for im in source_model(run_dir).images.values())
+    assert "toy export of" in capsys.readouterr().out
+    with pytest.raises(SystemExit):  # gone from the choices once unregistered
+        build_parser().parse_args(["export", str(run_dir), str(tmp_path / "again"), "--format", "toy"])
 
 
 def test_flat_names_refuses_collisions():
@@ -409,7 +432,8 @@ def test_nerfstudio_cameras_per_frame_and_models():
     assert (b["fl_x"], b["fl_y"], b["cx"], b["cy"], b["w"], b["h"]) == (600.0, 610.0, 400.0, 300.0, 800, 600)
     assert (b["k1"], b["k2"], b["p1"], b["p2"]) == (0.1, -0.01, 0.001, 0.002)
     assert meta["frames"][0]["k1"] == 0.0
-    fisheye = nerfstudio_camera(Intrinsics(3, "OPENCV_FISHEYE", 100, 100, np.array([50, 50, 50, 50, 0.1, 0.2, 0.3, 0.4])))
+    fisheye_params = np.array([50, 50, 50, 50, 0.1, 0.2, 0.3, 0.4])
+    fisheye = nerfstudio_camera(Intrinsics(3, "OPENCV_FISHEYE", 100, 100, fisheye_params))
     assert fisheye["camera_model"] == "OPENCV_FISHEYE" and fisheye["k4"] == 0.4 and "p1" not in fisheye
     with pytest.raises(ValueError, match="undistort first"):
         nerfstudio_camera(Intrinsics(4, "FOV", 100, 100, np.array([50, 50, 50, 50, 0.1])))

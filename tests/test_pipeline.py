@@ -63,15 +63,15 @@ def test_sara_extends_the_tracks_of_the_final_model_once(tmp_path: Path, synthet
     """Without a pose-guided refinement (the round switched off), the final model's tracks are still
     extended, once: a second run leaves the model as it is and does not see it as damaged."""
     from sara.mapping import model_digest
-    from sara.pairs import sara_source
+    from sara.pairs.sara.rounds import SaraRounds
 
     images, gt = synthetic_scene
     caplog.set_level("INFO", logger="sara")
     out = tmp_path / "out"
-    conf = make_config("sift-offline", {"graph.pose_guided_pairs_per_image": 0})
+    conf = make_config("sift-offline", {"rounds.pose_guided_pairs_per_image": 0})
     report = run(conf, images, out, gt_dir=gt, progress=False)
     assert report.metrics["num_registered"] == 10
-    extension = read_json(out / "run.json")["stages"]["repair"]["extension"]
+    extension = read_json(out / "run.json")["stages"]["rounds"]["extension"]
     assert extension["observations_added"] > 0
     assert "final model:" in caplog.text
     digest = model_digest(out / "sparse")
@@ -79,23 +79,23 @@ def test_sara_extends_the_tracks_of_the_final_model_once(tmp_path: Path, synthet
     again = run(conf, images, out, gt_dir=gt, progress=False)
     assert model_digest(out / "sparse") == digest and "final model:" not in caplog.text
     assert again.metrics["auc"] == report.metrics["auc"]
-    assert again.stages["repair"]["extension"]["observations_added"] == extension["observations_added"]
+    assert again.stages["rounds"]["extension"]["observations_added"] == extension["observations_added"]
 
     # a last step that fails leaves the model as the mapper made it, and says so
     def broken(*args, **kwargs):
         raise OSError("features file unreadable")
 
-    monkeypatch.setattr(sara_source.after_mapping, "finish", broken)
+    monkeypatch.setattr(SaraRounds, "finish", broken)
     failed = tmp_path / "failed"
     report = run(conf, images, failed, progress=False)
-    assert "keeping the model as it is" in caplog.text and "extension" not in report.stages.get("repair", {})
+    assert "keeping the model as it is" in caplog.text and "extension" not in report.stages.get("rounds", {})
     assert report.stages["map"]["num_registered"] == 10
 
     # switched off: the model is the mapper's
     off = tmp_path / "off"
-    run(make_config("sift-offline", {"graph.pose_guided_pairs_per_image": 0, "graph.extend_tracks": False}),
+    run(make_config("sift-offline", {"rounds.pose_guided_pairs_per_image": 0, "rounds.extend_tracks": False}),
         images, off, progress=False)
-    assert "extension" not in read_json(off / "run.json")["stages"].get("repair", {})
+    assert "extension" not in read_json(off / "run.json")["stages"].get("rounds", {})
 
 
 def test_weakly_matched_views_get_pairs_before_the_first_mapping(tmp_path: Path, synthetic_scene, caplog):
@@ -103,7 +103,7 @@ def test_weakly_matched_views_get_pairs_before_the_first_mapping(tmp_path: Path,
     and the report count them, and a second run changes nothing."""
     images, gt = synthetic_scene
     caplog.set_level("INFO", logger="sara")
-    conf = make_config("sift-offline", {"pairs.min_view_inliers": 10**6})
+    conf = make_config("sift-offline", {"rounds.support_min_view_inliers": 10**6})
     out = tmp_path / "out"
     report = run(conf, images, out, gt_dir=gt, progress=False)
     assert "more pairs before mapping" in caplog.text

@@ -1,5 +1,5 @@
 """The pose-guided round on a real (synthesized) COLMAP model: reading its geometry, choosing pairs,
-re-triangulating with fixed poses and bundle-adjusting (`sara.colmap.refine`, `sara.pairs.pose_guided`)."""
+re-triangulating with fixed poses and bundle-adjusting (`sara.colmap.refine`, `sara.pairs.sara.pose_guided`)."""
 
 from __future__ import annotations
 
@@ -11,21 +11,15 @@ import numpy as np
 import pycolmap
 import pytest
 
-from sara.colmap.refine import (
-    TrackExtension,
-    extend_tracks,
-    read_geometry,
-    track_distance_threshold,
-    track_sizes,
-    triangulate_and_adjust,
-)
+from sara.colmap.refine import read_geometry, triangulate_and_adjust
+from sara.colmap.tracks import TrackExtension, extend_tracks, track_distance_threshold, track_sizes
 from sara.config import make_config
 from sara.pairs import PairContext
-from sara.pairs import pose_guided as round_
+from sara.pairs.sara import pose_guided as round_
 from sara.selection.pose_guided import covisibility
 
-ON = {"graph.pose_guided_pairs_per_image": 0.5, "graph.max_pairs_per_image": 4.0,
-      "graph.max_pairs_fraction": 0.25, "pairs.repair_rounds": 3}
+ON = {"rounds.pose_guided_pairs_per_image": 0.5, "budget.max_pairs_per_image": 4.0,
+      "budget.max_pairs_fraction": 0.25, "rounds.repair_rounds": 3}
 
 
 @pytest.fixture(scope="module")
@@ -98,7 +92,7 @@ def test_round_chooses_unmatched_pairs_within_its_budget_once(model: Path, tmp_p
     # its own budget is ceil(0.5 * 8) = 4, but all rounds together may match min(4 * 8, 25% of 28) = 7
     assert len(extra) == info["budget"] == 7 - 4
     assert not set(extra) & {tuple(sorted(p)) for p in chain}
-    key = round_.selection_key(chain, conf.graph)
+    key = round_.selection_key(chain, conf)
     assert round_.recorded_pairs(tmp_path, key) is None
     round_.mark_chosen(tmp_path, key, extra, info)
     assert round_.recorded_pairs(tmp_path, key) == extra
@@ -382,7 +376,7 @@ def test_a_view_whose_features_do_not_fit_the_model_is_left_out_of_the_extension
 
 
 def test_the_scale_test_is_on_only_for_features_whose_scores_are_scales():
-    graph = make_config().graph
-    assert round_._extension(graph, "sift").scale_quantile == graph.extend_tracks_scale_quantile > 0
+    rounds = make_config().rounds
+    assert round_._extension(rounds, "sift").scale_quantile == rounds.extend_tracks_scale_quantile > 0
     for backend in ("aliked-n16", "disk", "xfeat"):  # their scores are detection scores
-        assert round_._extension(graph, backend).scale_quantile == 0.0
+        assert round_._extension(rounds, backend).scale_quantile == 0.0

@@ -54,7 +54,7 @@ def test_ray_cluster_gives_the_serial_pairs(ray_cluster, synthetic_scene, tmp_pa
     # 45 candidates in 6 shards: the scorer really runs on Ray. The pairs added for weakly matched
     # views depend on COLMAP's verified inlier counts, which vary by a few between identical runs
     # (multi-threaded RANSAC): off, so that pairs.txt compares the selection itself
-    shards = ["-s", "execute.shard_size=8", "-s", "pairs.min_view_inliers=0"]
+    shards = ["-s", "execute.shard_size=8", "-s", "rounds.support_min_view_inliers=0"]
     assert main(["run", str(images), str(serial), "-q", "--workers", "1", *shards]) == 0
     monkeypatch.setenv("RAY_ADDRESS", ray_cluster)
     assert main(["run", str(images), str(clustered), "-q", "--executor", "ray", "--ray-address", "auto",

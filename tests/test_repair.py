@@ -3,7 +3,7 @@ from pathlib import Path
 import pytest
 
 from sara.config import MapConfig
-from sara.pairs.repair import left_out_views, repair_pairs
+from sara.pairs.sara.repair import left_out_views, repair_pairs
 
 
 def _scores(path: Path, rows):
@@ -44,7 +44,7 @@ def test_a_repair_that_leaves_most_of_its_views_out_is_not_repeated(tmp_path: Pa
     from types import SimpleNamespace
 
     from sara.config import PipelineConfig
-    from sara.pairs import sara_source
+    from sara.pairs.sara import rounds as sara_source
 
     registered = {"a", "b", "c"}
     monkeypatch.setattr(sara_source.colmap, "registered_images", lambda model_dir: set(registered))
@@ -61,23 +61,23 @@ def test_a_repair_that_leaves_most_of_its_views_out_is_not_repeated(tmp_path: Pa
     ctx = SimpleNamespace(names=["a", "b", "c", "d", "e"], out_dir=tmp_path, conf=PipelineConfig())
     model = tmp_path / "sparse" / "0"
 
-    first = sara_source.after_mapping(ctx, pairs, model)
+    first = sara_source.after_mapping(ctx, pairs, model).pairs
     assert first == [("a", "d"), ("a", "e")]
     registered.add("d")  # the repair registered half of its views: repair again
-    second = sara_source.after_mapping(ctx, pairs + first, model)
+    second = sara_source.after_mapping(ctx, pairs + first, model).pairs
     assert second == [("b", "e")]
     # e is still out after a repair meant for it: no third repair, the pose-guided pairs instead
-    third = sara_source.after_mapping(ctx, pairs + first + second, model)
+    third = sara_source.after_mapping(ctx, pairs + first + second, model).pairs
     assert third == [("a", "c")]
     # and it stays so once the pose-guided pairs are matched
-    assert sara_source.after_mapping(ctx, pairs + first + second + third, model) == [("a", "c")]
+    assert sara_source.after_mapping(ctx, pairs + first + second + third, model).pairs == [("a", "c")]
     # unless another view drops out of the model
     registered.discard("d")
-    assert sara_source.after_mapping(ctx, pairs + first + second + third, model) == [("b", "d"), ("c", "e")]
+    assert sara_source.after_mapping(ctx, pairs + first + second + third, model).pairs == [("b", "d"), ("c", "e")]
     # a record of another selection does not apply
     (tmp_path / "scores.csv").write_text(header + "".join(f"{a},{b},50,40,0.1,5,0.1,true,,tree\n" for a, b in pairs[:3]))
     registered.add("d")
-    assert sara_source.after_mapping(ctx, pairs + first + second, model) == [("c", "e")]
+    assert sara_source.after_mapping(ctx, pairs + first + second, model).pairs == [("c", "e")]
 
 
 class _Model:

@@ -6,23 +6,24 @@ from __future__ import annotations
 
 import json
 import re
+import shlex
 import shutil
 import subprocess
+import tomllib
+from importlib import resources
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from sara.config import make_config
+from sara.export import FORMATS
+from sara.io.scores import read_scores_csv, write_scores_csv
 from sara.pipeline import run
-from sara.report import load_run, read_scores
-from sara.report.html import (
-    example_pairs,
-    graph_layout,
-    histogram_svg,
-    top_down_frame,
-    write_report,
-)
+from sara.report import SELECTED_ROLES, load_run, read_scores
+from sara.report.html import ASSETS, asset, render, write_report
+from sara.report.svg import graph_layout, histogram_svg, top_down_frame
+from sara.report.thumbnails import example_pairs
 
 CHROMIUM = Path("/usr/bin/chromium")
 
@@ -30,13 +31,16 @@ CHROMIUM = Path("/usr/bin/chromium")
 PROBE_HEAD = """<script>window.__errors = [];
 window.addEventListener('error', function (e) { window.__errors.push('error: ' + (e.message || e.target.src)); }, true);
 (function () { var orig = console.error; console.error = function () {
-  window.__errors.push('console.error: ' + Array.prototype.join.call(arguments, ' ')); orig.apply(console, arguments); };
+  window.__errors.push('console.error: ' + Array.prototype.join.call(arguments, ' '));
+  orig.apply(console, arguments); };
 })();</script>"""
 PROBE_TAIL = """<script>window.addEventListener('load', function () {
   var imgs = Array.prototype.slice.call(document.images);
-  var broken = imgs.filter(function (im) { return !(im.complete && im.naturalWidth > 0); }).map(function (im) { return im.alt; });
+  var broken = imgs.filter(function (im) { return !(im.complete && im.naturalWidth > 0); })
+    .map(function (im) { return im.alt; });
   var svgs = Array.prototype.slice.call(document.querySelectorAll('svg'));
-  var empty = svgs.filter(function (s) { var r = s.getBoundingClientRect(); return !(r.width > 0 && r.height > 0); }).length;
+  var empty = svgs.filter(function (s) { var r = s.getBoundingClientRect(); return !(r.width > 0 && r.height > 0); })
+    .length;
   var box = document.getElementById('viewgraph');
   var status = {images: imgs.length, broken: broken, errors: window.__errors, svgs: svgs.length, empty_svgs: empty,
                 edges: document.querySelectorAll('#viewgraph line').length,
@@ -108,7 +112,8 @@ def test_sara_report_renders_in_chromium(sara_run: Path, tmp_path: Path):
 def test_report_without_scores_or_model_renders(bare_run: Path, tmp_path: Path):
     page = write_report(bare_run)
     text = page.read_text(encoding="utf-8")
-    assert "force-directed layout" in text and "only the SARA pair source scores pairs" in text and "No model was built" in text
+    assert "force-directed layout" in text and "only the SARA pair source scores pairs" in text
+    assert "No model was built" in text
     status = open_in_chromium(page, tmp_path)
     assert status["errors"] == [] and status["broken"] == []
     assert status["edges"] == len(load_run(bare_run).pairs)
@@ -195,7 +200,7 @@ def test_pairs_added_after_the_first_round_are_drawn_by_what_added_them(sara_run
 
     data = load_run(sara_run)
     roles = data.edge_roles()
-    first = {p for p, r in zip(data.scores.pairs, data.scores.role) if r in ("tree", "loop", "anchor", "weak", "rescue")}
+    first = {p for p, r in zip(data.scores.pairs, data.scores.role) if r in SELECTED_ROLES}
     added = [p for p in data.pairs if p not in first]
     assert added  # the synthetic run adds pairs for weak views (and may run the pose-guided round)
     for stage, role in (("support", "support"), ("pose_guided", "pose-guided")):
@@ -205,3 +210,117 @@ def test_pairs_added_after_the_first_round_are_drawn_by_what_added_them(sara_run
     assert "support" in {roles[p] for p in added}
     text = write_report(sara_run, sara_run / "roles.html").read_text(encoding="utf-8")
     assert 'data-role="support"' in text
+
+
+def _figcaptions(text: str, heading: str) -> list[str]:
+    """The captions under one <h3> of the "Views and pairs" section, tags removed."""
+    part = text.split(f"<h3>{heading}</h3>", 1)[1].split("<h3>", 1)[0].split("</section>", 1)[0]
+    return [re.sub(r"<[^>]+>", "|", c) for c in re.findall(r"<figcaption>(.*?)</figcaption>", part)]
+
+
+def test_pair_captions_tell_capped_pairs_apart(sara_run: Path, tmp_path: Path):
+    """A well-textured scene: every selected pair has all b best matches as inliers, so O and w are the
+    same capped value for all. The captions still differ, by the inliers among all mutual matches."""
+    out = tmp_path / "capped"
+    shutil.copytree(sara_run, out)
+    table, roles = read_scores_csv(out / "scores.csv")
+    selected = np.array([r in SELECTED_ROLES for r in roles])
+    b, m = 50, 1024
+    table.num_matches[selected] = b
+    table.num_inliers[selected] = b
+    table.overlap[selected] = b / m
+    table.weight[selected] = b / m
+    table.num_inliers_all[selected] = 100 + 7 * np.arange(int(selected.sum()))
+    write_scores_csv(out / "scores.csv", table, roles)
+    captions = _figcaptions(write_report(out).read_text(encoding="utf-8"), "Selected pairs")
+    assert len(captions) >= 2
+    first_lines = [c.split("|O=")[0] for c in captions]
+    assert len(set(first_lines)) == len(first_lines), first_lines
+    for caption in captions:
+        shown = int(re.search(r"([\d,]+) inliers among all mutual matches", caption).group(1).replace(",", ""))
+        assert shown in set(table.num_inliers_all[selected].tolist())
+        assert f"O={b / m:.4f} ({b} of the {b} best matches, all inliers: the cap)" in caption
+
+
+def test_captions_name_what_each_number_is(sara_run: Path):
+    data = load_run(sara_run)
+    s = data.scores
+    selected, _ = example_pairs(data)
+    captions = _figcaptions(write_report(sara_run, sara_run / "captions.html").read_text(encoding="utf-8"),
+                            "Selected pairs")
+    for e, caption in zip(selected, captions):
+        assert f"{s.num_inliers_all[e]:,} inliers among all mutual matches" in caption
+        assert f"of the {s.num_matches[e]} best matches" in caption and "parallax P=" in caption
+        if s.pairs[e] in data.verified:
+            assert f"{data.verified[s.pairs[e]]:,} verified matches" in caption
+
+
+def test_thumbnails_say_how_many_they_show(sara_run: Path):
+    data = load_run(sara_run)
+    text = write_report(sara_run, sara_run / "counts.html").read_text(encoding="utf-8")
+    selected, rejected = example_pairs(data)
+    num_selected = sum(r in SELECTED_ROLES for r in data.scores.role)
+    assert 0 < len(selected) < num_selected  # the synthetic run selects more pairs than the page shows
+    assert f"{len(selected)} of {num_selected} selected pairs shown (the best of each role" in text
+    assert f"of {len(data.names)} views shown" in text
+    if rejected:
+        num_rejected = data.scores.role.count("rejected")
+        assert f"{len(rejected)} of {num_rejected} rejected candidates shown" in text
+
+
+def test_page_ends_with_the_next_commands(sara_run: Path, bare_run: Path):
+    text = write_report(sara_run, sara_run / "next.html").read_text(encoding="utf-8")
+    assert "<h2>Next</h2>" in text and text.index("<h2>Next</h2>") > text.index("Reconstruction")
+    commands = re.search(r'<pre class="cmds">(.*?)</pre>', text, re.DOTALL).group(1).splitlines()
+    out = str(sara_run.resolve())
+    formats = list(FORMATS)
+    assert [shlex.split(c)[:2] for c in commands] == [["sara", "export"]] * len(formats) + [["sara", "report"]]
+    assert formats and set(formats) >= {"3dgs", "nerfstudio", "colmap"}
+    for command, fmt in zip(commands, formats):
+        assert shlex.split(command) == ["sara", "export", out, str(sara_run.resolve() / fmt), "--format", fmt]
+    assert shlex.split(commands[-1]) == ["sara", "report", out]
+    bare = write_report(bare_run).read_text(encoding="utf-8")
+    assert "<h2>Next</h2>" in bare and "sara export " not in bare and f"sara report {bare_run.resolve()}" in bare
+
+
+def test_style_and_script_come_from_package_data(sara_run: Path):
+    """The page's CSS and JS are files of the package, declared as package data so a wheel ships them."""
+    folder = resources.files("sara.report").joinpath("assets")
+    text = write_report(sara_run, sara_run / "assets.html").read_text(encoding="utf-8")
+    for name in ASSETS:
+        content = folder.joinpath(name).read_text(encoding="utf-8")
+        assert content.strip() and asset(name) == content and content in text
+    source = "".join(p.read_text(encoding="utf-8") for p in Path(write_report.__code__.co_filename).parent.glob("*.py"))
+    assert "body{" not in source and "addEventListener" not in source  # not inline in the code any more
+    pyproject = tomllib.loads((Path(__file__).resolve().parents[1] / "pyproject.toml").read_text(encoding="utf-8"))
+    patterns = pyproject["tool"]["setuptools"]["package-data"]["sara"]
+    package = Path(write_report.__code__.co_filename).parents[1]
+    declared = {p.relative_to(package).as_posix() for pattern in patterns for p in package.glob(pattern)}
+    assert {f"report/assets/{name}" for name in ASSETS} <= declared
+
+
+def test_a_round_of_another_pair_source_is_drawn_in_its_own_role(sara_run: Path):
+    """A pair source's rounds may name roles this page does not know: their edges are drawn and listed."""
+    data = load_run(sara_run)
+    first = {p for p, r in zip(data.scores.pairs, data.scores.role) if r in SELECTED_ROLES}
+    added = [p for p in data.pairs if p not in first]
+    data.added = {**data.added, added[0]: "next-view"}
+    text = render(data)
+    graph = text.split('<svg id="viewgraph"', 1)[1].split("</svg>", 1)[0]
+    assert 'class="edges role-next-view"' in graph and graph.count("<line") == len(data.edge_roles())
+    assert 'data-role="next-view"' in text and "<td>next-view</td><td>1</td>" in text
+
+
+def test_the_next_commands_run(sara_run: Path, tmp_path: Path, capsys):
+    """The page's commands work as printed, through the command line's entry point."""
+    from sara.cli import main
+
+    out = tmp_path / "run"
+    shutil.copytree(sara_run, out, ignore=shutil.ignore_patterns("*.html", "*.lock"))
+    text = write_report(out).read_text(encoding="utf-8")
+    commands = [shlex.split(c) for c in re.search(r'<pre class="cmds">(.*?)</pre>', text, re.DOTALL)
+                .group(1).splitlines()]
+    for argv in (c for c in commands if c[1] == "report" or c[-1] == "colmap"):
+        assert main(argv[1:] + ["--quiet"]) == 0, argv
+    assert (out / "colmap" / "sparse" / "0").is_dir() and (out / "report.html").exists()
+    assert f"report: {out / 'report.html'}" in capsys.readouterr().out

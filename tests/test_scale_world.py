@@ -1,4 +1,4 @@
-"""The synthetic street worlds of `sara.scale`: determinism, truth, readers, and selection on them."""
+"""The synthetic street worlds of `sara.bench.world`: determinism, truth, readers, and selection on them."""
 
 from __future__ import annotations
 
@@ -7,16 +7,19 @@ import numpy as np
 import pytest
 
 from sara import colmap
-from sara.io.h5 import list_names, read_features
-from sara.scale import (
+from sara.bench.world import (
+    TRUTH_NAME,
     Truth,
     WorldConfig,
+    build_city,
+    camera_poses,
     features_path,
     image_set,
     make_world,
+    observe_image,
     world_info,
 )
-from sara.scale.world import TRUTH_NAME, build_city, camera_poses, observe_image
+from sara.io.h5 import list_names, read_features
 
 SMALL = 120
 
@@ -120,9 +123,9 @@ def test_image_observation_ids_are_the_truth(world):
 
 def test_selection_on_a_small_world_is_connected_and_true(world, tmp_path):
     """SARA's pair selection, called as the pipeline calls it, on the world."""
+    from sara.bench.world import selection_context
     from sara.config import make_config
     from sara.pairs import get_source
-    from sara.scale.world import selection_context
 
     names = image_set(world).names
     # the default settings but a smaller k-means sample for the codebook (its cost does not depend on N)

@@ -1,11 +1,11 @@
-"""Pairs added before the first mapping for weakly matched views (`sara.pairs.support`)."""
+"""Pairs added before the first mapping for weakly matched views (`sara.pairs.sara.support`)."""
 
 from pathlib import Path
 from types import SimpleNamespace
 
 from sara.config import PipelineConfig, make_config
-from sara.pairs import sara_source
-from sara.pairs.support import support_pairs, view_inliers
+from sara.pairs.sara import rounds as sara_source
+from sara.pairs.sara.support import support_pairs, view_inliers
 
 HEADER = "name0,name1,num_matches,num_inliers,overlap,parallax_deg,weight,accepted,reason,role\n"
 
@@ -65,5 +65,5 @@ def test_the_source_adds_support_pairs_once_per_selection(tmp_path: Path, monkey
     assert sara_source.before_mapping(ctx, pairs, tmp_path / "database.db") == [("a", "c")]
     inliers[("a", "c")] = 0
     assert sara_source.before_mapping(ctx, pairs + extra, tmp_path / "database.db") == []
-    off = SimpleNamespace(names=ctx.names, out_dir=tmp_path, conf=make_config(overrides={"pairs.min_view_inliers": 0}))
+    off = SimpleNamespace(names=ctx.names, out_dir=tmp_path, conf=make_config(overrides={"rounds.support_min_view_inliers": 0}))
     assert sara_source.before_mapping(off, pairs, tmp_path / "database.db") == []

@@ -3,7 +3,7 @@
 import numpy as np
 
 from sara.io.scores import PairScores, concat_scores
-from sara.pairs.sara_source import _widen_schedule, widen_candidates
+from sara.pairs.sara.source import _widen_schedule, widen_candidates
 from sara.retrieval import knn_pairs
 from sara.selection import connected_components
 

@@ -1,7 +1,8 @@
 """`sara demo`: an offline self-test that needs nothing but the installed package.
 
 Synthesises a scene with known poses, reconstructs it with SARA's pairs and with exhaustive pairs
-through the same matching and mapping, evaluates both against the truth and prints the table.
+through the same matching and mapping, evaluates both against the truth and prints the table. It
+writes SARA's `report.html`, as `sara run` does, so the demo shows the page a real run leaves.
 """
 
 from __future__ import annotations
@@ -10,6 +11,7 @@ from pathlib import Path
 
 from .config import make_config
 from .pipeline import run, share_features
+from .report.html import write_report
 from .synthetic import make_scene
 from .tables import markdown_table
 
@@ -31,7 +33,8 @@ def _fmt(value: float | None) -> str:
 
 
 def run_demo(out_dir: Path, *, num_images: int = 24, progress: bool = True) -> str:
-    """Run the demo and return the comparison table (Markdown)."""
+    """Run the demo, write `out_dir/sara/report.html` and return the comparison table (Markdown)
+    followed by where the model and the report are."""
     out_dir = Path(out_dir)
     images, gt = make_scene(out_dir / "scene", num_images=num_images)
     features = out_dir / "features"
@@ -41,7 +44,9 @@ def run_demo(out_dir: Path, *, num_images: int = 24, progress: bool = True) -> s
         conf = make_config("sift-offline", {"pairs.method": method})
         share_features(features, out_dir / method)
         reports[method] = run(conf, images, out_dir / method, gt_dir=gt, progress=progress)
+    report_html = write_report(out_dir / "sara")
     table = markdown_table(["", *METHODS], [[label, *(get(reports[m]) for m in METHODS)] for label, get in ROWS])
-    lines = [f"sara demo: synthetic scene of {num_images} images ({out_dir})", "", table]
-    lines += ["", f"Model: {out_dir / 'sara' / 'sparse' / '0'}  (report: {out_dir / 'sara' / 'report.md'})"]
+    lines = [f"sara demo: synthetic scene of {num_images} images ({out_dir})", "", table, "",
+             f"Model: {out_dir / 'sara' / 'sparse' / '0'}  (run record: {out_dir / 'sara' / 'report.md'})",
+             f"Report: {report_html}  (open it in a browser: why these pairs, what came of them)"]
     return "\n".join(lines)

@@ -405,11 +405,11 @@ def _import_keypoints(db_path: Path, h5_path: Path, names: list[str]) -> None:
 def _export_h5(db_path: Path, h5_path: Path, images: ImageSet, progress: bool) -> dict[str, int]:
     """Copy the database's SIFT features of `images` into `h5_path`; returns keypoints per image."""
     num_kp: dict[str, int] = {}
-    with colmap.open_database(db_path) as db, atomic_path(h5_path) as tmp:
+    with colmap.FeatureReader(db_path) as reader, atomic_path(h5_path) as tmp:
         with h5py.File(tmp, "w") as h5:
-            ids = sorted((im.name, im.image_id) for im in db.read_all_images() if im.name in images.sizes)
+            ids = sorted((name, image_id) for name, image_id in reader.image_ids().items() if name in images.sizes)
             for name, image_id in tqdm(ids, desc=f"write {h5_path.name}", unit="img", disable=not progress):
-                kp, scale, desc = colmap.read_sift(db, image_id)
+                kp, scale, desc = reader.read_sift(image_id)
                 # HDF5 crashes on a full disk: make sure the image fits before writing it
                 ensure_free_space(h5_path.parent, len(kp) * (8 + 4 + 2 * desc.shape[-1]) + 4096)
                 write_features(h5, name, Features(

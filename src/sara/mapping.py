@@ -111,7 +111,7 @@ def _extend(conf: MapConfig, db_path: Path, images_root: Path, tmp: Path, seed: 
     (templeSparseRing: 13 of 16 views kept; 16 after re-triangulating, in 0.2 s against 0.7 s
     for mapping anew). Mapping from scratch stays the fallback because the mapper cannot revisit
     its earlier choices, but only where continuing made no progress: a continued model that gained
-    views was never beaten by mapping anew in the stand-ins of docs/ACCURACY.md (15.2), and that
+    views was never beaten by mapping anew on the stand-in scenes we measured, and that
     second whole mapping is what made repair rounds slow on large low-texture scenes.
     """
     tic = time.perf_counter()
@@ -176,6 +176,16 @@ def recover(out_dir: Path) -> None:
             shutil.rmtree(old, ignore_errors=True)
         else:
             old.rename(out_dir / "sparse")
+
+
+def adopt(out_dir: Path, info: dict[str, Any], *, key: str | None = None) -> None:
+    """Make `sparse/` as it is now the map stage's output, although the mapper did not write it (a
+    round refined or extended the model of the current matches): a re-run then keeps it instead of
+    mapping again, and `sparse/` changed by anyone else is still noticed. `key`: the matches it is
+    the model of (`state_key`); None keeps the recorded one."""
+    recorded = records.read_record(out_dir, STAGE) or {}
+    records.mark_done(out_dir, STAGE, key if key is not None else recorded.get("key", ""), info,
+                      outputs={"sparse": model_digest(Path(out_dir) / "sparse")})
 
 
 def colmap_models(sparse: Path) -> list[Path]:

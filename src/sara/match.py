@@ -168,13 +168,13 @@ def _work_database(db_path: Path, next_db: Path, out_dir: Path, key: str, conf_k
     colmap.remove_database(next_db)
     if not beside or (same_settings and _only_additions(db_path, pairs, names)):
         if not same_settings:
-            _clear_matches(db_path)  # a fresh start, or matches made with other settings
+            colmap.clear_matches(db_path)  # a fresh start, or matches made with other settings
             records.mark_done(out_dir, CONF_RECORD, conf_key)
         return Path(db_path)
     ensure_free_space(out_dir, Path(db_path).stat().st_size)
     colmap.copy_database(db_path, next_db)
     if not same_settings:
-        _clear_matches(next_db)
+        colmap.clear_matches(next_db)
     records.mark_done(out_dir, PROGRESS_RECORD, key, {"time_s": 0.0, "beside": True, "conf_key": conf_key})
     return next_db
 
@@ -182,8 +182,7 @@ def _work_database(db_path: Path, next_db: Path, out_dir: Path, key: str, conf_k
 def _only_additions(db_path: Path, pairs: list[Pair], ids: dict[str, int]) -> bool:
     """Whether matching `pairs` only adds to the database (every pair it holds is wanted)."""
     wanted = {tuple(sorted((ids[a], ids[b]))) for a, b in pairs}
-    with colmap.open_database(db_path) as db:
-        return all((i, j) in wanted for i, j, _ in colmap.verified_image_pairs(db))
+    return all((i, j) in wanted for i, j, _ in colmap.verified_image_pairs(db_path))
 
 
 #: chunks per worker at least, when there are few pairs for the executor's workers
@@ -285,14 +284,13 @@ def space_free_names(db_path: Path, out_dir: Path) -> Iterator[dict[str, str]]:
     `sara-alias-<image_id>` in the database for the duration; the mapping is saved first, so a
     killed run is repaired on resume. Yields original name -> alias.
     """
-    with colmap.open_database(db_path) as db:
-        odd = {im.name: im.image_id for im in db.read_all_images() if needs_alias(im.name)}
+    odd = {name: image_id for name, image_id in colmap.image_ids(db_path).items() if needs_alias(name)}
     if not odd:
         yield {}
         return
     alias = {name: f"sara-alias-{image_id}" for name, image_id in odd.items()}
     write_json_atomic(Path(out_dir) / ".sara" / ALIASES_NAME, alias)
-    _rename(db_path, {image_id: alias[name] for name, image_id in odd.items()})
+    colmap.rename_images(db_path, {image_id: alias[name] for name, image_id in odd.items()})
     try:
         yield alias
     finally:
@@ -308,46 +306,25 @@ def restore_names(db_paths: list[Path], out_dir: Path) -> None:
     for db_path in db_paths:
         if not Path(db_path).exists():
             continue
-        with colmap.open_database(db_path) as db:
-            ids = {im.image_id: original[im.name] for im in db.read_all_images() if im.name in original}
-        _rename(db_path, ids)
+        ids = {image_id: original[name] for name, image_id in colmap.image_ids(db_path).items() if name in original}
+        colmap.rename_images(db_path, ids)
     path.unlink()
-
-
-def _rename(db_path: Path, new_names: dict[int, str]) -> None:
-    with colmap.open_database(db_path) as db:
-        for image_id, name in new_names.items():
-            image = db.read_image(image_id)
-            image.name = name
-            db.update_image(image)
-
-
-def _clear_matches(db_path: Path) -> None:
-    with colmap.open_database(db_path) as db:
-        db.clear_matches()
-        db.clear_two_view_geometries()
 
 
 def _remove_other_pairs(db_path: Path, pairs: list[Pair], ids: dict[str, int]) -> None:
     """Delete matches of pairs that are not in `pairs` (left by another pairs file)."""
     wanted = {tuple(sorted((ids[a], ids[b]))) for a, b in pairs}
-    with colmap.open_database(db_path) as db:
-        for i, j, _ in colmap.verified_image_pairs(db):
-            if (i, j) not in wanted:
-                db.delete_matches(i, j)
-                db.delete_two_view_geometry(i, j)
+    colmap.delete_pairs_except(db_path, wanted)
 
 
 def _unmatched(db_path: Path, pairs: list[Pair], ids: dict[str, int]) -> list[Pair]:
-    with colmap.open_database(db_path) as db:
-        return [(a, b) for a, b in pairs if not db.exists_two_view_geometry(ids[a], ids[b])]
+    done = colmap.has_two_view_geometry(db_path, [(ids[a], ids[b]) for a, b in pairs])
+    return [pair for pair, matched in zip(pairs, done) if not matched]
 
 
 def verification_stats(db_path: Path, min_num_inliers: int) -> dict:
     """Verified pairs and inlier matches per verified pair, from the database."""
-    with colmap.open_database(db_path) as db:
-        _, num_inliers = db.read_two_view_geometry_num_inliers()
-    inliers = np.asarray(num_inliers, dtype=np.int64)
+    inliers = colmap.two_view_inlier_counts(db_path)
     verified = inliers[inliers >= min_num_inliers]
     return {
         "num_verified_pairs": int(len(verified)),

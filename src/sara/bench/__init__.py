@@ -1,5 +1,7 @@
 """`sara bench`: every pair source side by side on scenes with known poses (`run.py`), the
-tables and plot of the results (`tables.py`), and scenes under random file names (`names.py`)."""
+tables and plot of the results (`tables.py`), scenes under random file names (`names.py`), and
+synthetic street worlds of any size with true poses, to measure pair selection at scale (`world/`,
+imported on its own as `sara.bench.world`)."""
 
 from .names import renamed_scene
 from .run import (

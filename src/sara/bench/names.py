@@ -4,7 +4,7 @@ COLMAP numbers images in name order, and its matching and mapping break ties by 
 image of a pair is the first, which pair starts the model, which view is registered next. SARA's
 spanning tree breaks ties between equal weights the same way. So every method's accuracy depends a
 little on the file names. On the shared scenes, random names move exhaustive matching's AUC@1 by up
-to 0.04 (docs/ACCURACY.md 18.2), far more than many differences between methods. `sara bench
+to 0.04, far more than many differences between methods. `sara bench
 --name-orders K` runs each scene again under K random namings, so that a comparison can be read over
 several of them instead of one.
 

@@ -126,7 +126,7 @@ def row_from_report(stages: dict[str, Any], metrics: dict[str, Any] | None) -> d
         "track_length": m.get("mean_track_length"),
         # pairs actually matched: SARA's selection plus any pairs its repair step added
         "pairs": match.get("num_pairs", pairs.get("num_pairs")),
-        "repair_pairs": stages.get("repair", {}).get("pairs_added", 0),
+        "repair_pairs": stages.get("rounds", {}).get("pairs_added", 0),
         # a vocabulary tree is normally built once and reused: its build time is reported apart
         "select_s": max(0.0, float(pairs.get("time_s", 0.0)) - tree_build_s),
         "tree_build_s": tree_build_s,

@@ -6,7 +6,7 @@ inside `sara.colmap`, like every other call into it.
 
 Keypoints go in COLMAP's pixel convention (centre of the top-left pixel at (0.5, 0.5)) as
 6-column affine shapes ``x y a11 a12 a21 a22`` (scale times a rotation), which
-`sara.colmap.read_sift` turns back into a scale; descriptors as uint8 SIFT (128 columns).
+`sara.colmap.FeatureReader.read_sift` turns back into a scale; descriptors as uint8 SIFT (128 columns).
 """
 
 from __future__ import annotations

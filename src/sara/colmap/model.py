@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
-from . import has_model
+from .reconstruction import has_model
 
 
 @dataclass(frozen=True)

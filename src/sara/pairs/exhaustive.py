@@ -5,7 +5,7 @@ from __future__ import annotations
 import itertools
 
 from ..io.pairs import Pair
-from . import PairContext, PairResult
+from . import PairContext, PairResult, PairSource
 
 
 def exhaustive_pairs(names: list[str]) -> list[Pair]:
@@ -14,3 +14,6 @@ def exhaustive_pairs(names: list[str]) -> list[Pair]:
 
 def select(ctx: PairContext) -> PairResult:
     return PairResult(exhaustive_pairs(ctx.names))
+
+
+SOURCE = PairSource(select=select)

@@ -11,7 +11,7 @@ import time
 
 from .. import retrieval
 from ..io.pairs import canonical_pairs
-from . import PairContext, PairResult
+from . import PairContext, PairResult, PairSource
 
 
 def select(ctx: PairContext) -> PairResult:
@@ -26,3 +26,6 @@ def select(ctx: PairContext) -> PairResult:
     knn_s = time.perf_counter() - tic
     info = {"descriptor": rconf.descriptor, "num_neighbors": rconf.num_neighbors}
     return PairResult(pairs, info, {"global_descriptors": describe_s, "knn": knn_s})
+
+
+SOURCE = PairSource(select=select, sections=lambda conf: ("pairs", "retrieval"), caches=("global-*.h5",))

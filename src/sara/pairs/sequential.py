@@ -14,7 +14,8 @@ import numpy as np
 
 from ..descriptors import top_k_cosine
 from ..io.pairs import Pair, canonical_pairs
-from . import PairContext, PairResult
+from ..config import PipelineConfig
+from . import PairContext, PairResult, PairSource
 
 
 def sequential_offsets(overlap: int, *, quadratic: bool = False) -> list[int]:
@@ -45,24 +46,32 @@ def loop_pairs(ctx: PairContext, order: list[str]) -> list[Pair]:
     """Loop-closure pairs: every `loop_period`-th image with its nearest images by global descriptor."""
     from .. import retrieval
 
-    conf = ctx.conf.pairs
-    if conf.sequential_loop_period < 1 or conf.sequential_loop_neighbors < 1:
-        raise ValueError("pairs.sequential_loop_period and pairs.sequential_loop_neighbors must be at least 1")
+    conf = ctx.conf.sequential
+    if conf.loop_period < 1 or conf.loop_neighbors < 1:
+        raise ValueError("sequential.loop_period and sequential.loop_neighbors must be at least 1")
     path = retrieval.run(ctx.conf.retrieval, ctx.features_path, order, ctx.out_dir, images_root=ctx.images_root, progress=ctx.progress,
                          seed=ctx.conf.seed)
     names, desc = retrieval.read_global(path)
     row = {name: i for i, name in enumerate(names)}
     desc = desc[[row[name] for name in order]]
-    queries = list(range(0, len(order), conf.sequential_loop_period))
-    nbrs = nearest_neighbours(desc, queries, conf.sequential_loop_neighbors)
+    queries = list(range(0, len(order), conf.loop_period))
+    nbrs = nearest_neighbours(desc, queries, conf.loop_neighbors)
     return [(order[q], order[int(j)]) for q, found in zip(queries, nbrs) for j in found]
 
 
 def select(ctx: PairContext) -> PairResult:
-    conf = ctx.conf.pairs
-    pairs = sequential_pairs(ctx.names, conf.sequential_overlap, quadratic=conf.sequential_quadratic)
+    conf = ctx.conf.sequential
+    pairs = sequential_pairs(ctx.names, conf.overlap, quadratic=conf.quadratic)
     info: dict = {"num_sequential": len(pairs)}
-    if conf.sequential_loop_detection:
+    if conf.loop_detection:
         pairs = canonical_pairs(pairs + loop_pairs(ctx, sorted(ctx.names)))
         info["num_loop_pairs_added"] = len(pairs) - info["num_sequential"]
     return PairResult(pairs, info)
+
+
+def _sections(conf: PipelineConfig) -> tuple[str, ...]:
+    """Loop detection retrieves with the global descriptors."""
+    return ("pairs", "sequential", "retrieval") if conf.sequential.loop_detection else ("pairs", "sequential")
+
+
+SOURCE = PairSource(select=select, sections=_sections, caches=("global-*.h5",))

@@ -1,9 +1,9 @@
 """Vocabulary-tree pairs, as COLMAP's `vocab_tree_matcher` makes them (the paper's VocabTree baseline).
 
 Every image queries a pycolmap visual index of all images and is paired with its
-`pairs.vocab_num_images` best-scoring images (the query itself usually among them, as in COLMAP).
+`vocab_tree.num_images` best-scoring images (the query itself usually among them, as in COLMAP).
 
-The index needs a vocabulary tree: a saved one (`-s pairs.vocab_tree_path=FILE`, e.g. one of
+The index needs a vocabulary tree: a saved one (`-s vocab_tree.path=FILE`, e.g. one of
 COLMAP's pre-built trees or the `vocab_tree.bin` of an earlier run), or, when none is given, one
 built from this collection's own SIFT descriptors and saved as `<out>/vocab_tree.bin` for reuse.
 Building is kept short (a capped, seeded sample of descriptors, one clustering round of few
@@ -26,7 +26,7 @@ from .. import colmap
 from ..io import fingerprint, read_json, write_json_atomic
 from ..io.h5 import read_features
 from ..io.pairs import Pair, canonical_pairs
-from . import PairContext, PairResult
+from . import PairContext, PairResult, PairSource
 
 logger = logging.getLogger(__name__)
 
@@ -72,24 +72,24 @@ def retrieval_pairs(retrieved: Sequence[Pair], names: Sequence[str]) -> list[Pai
 
 def build_tree(ctx: PairContext) -> tuple[Path, dict]:
     """Build (or reuse, when built earlier from the same inputs) `<out>/vocab_tree.bin`."""
-    conf = ctx.conf.pairs
+    conf = ctx.conf.vocab_tree
     tree_path, record_path = Path(ctx.out_dir) / TREE_NAME, Path(ctx.out_dir) / TREE_RECORD_NAME
     stat = Path(ctx.features_path).stat()
     key = fingerprint({"names": list(ctx.names), "features": [stat.st_size, stat.st_mtime_ns],
-                       "words": conf.vocab_num_words, "max_descriptors": MAX_TREE_DESCRIPTORS,
+                       "words": conf.num_words, "max_descriptors": MAX_TREE_DESCRIPTORS,
                        "iterations": TREE_ITERATIONS, "seed": ctx.conf.seed})
     if tree_path.exists() and record_path.exists() and read_json(record_path).get("key") == key:
         logger.info("vocabtree: reusing %s", tree_path)
         return tree_path, {**read_json(record_path)["info"], "tree_reused": True}
     sample = sample_sift(ctx.features_path, ctx.names, MAX_TREE_DESCRIPTORS, seed=ctx.conf.seed,
                          progress=ctx.progress)
-    words = num_tree_words(len(sample), conf.vocab_num_words)
+    words = num_tree_words(len(sample), conf.num_words)
     if words < 2:
         raise ValueError(f"only {len(sample)} SIFT descriptors in the collection: too few to build a "
-                         "vocabulary tree; give a ready one with -s pairs.vocab_tree_path=FILE")
-    if words < conf.vocab_num_words:
+                         "vocabulary tree; give a ready one with -s vocab_tree.path=FILE")
+    if words < conf.num_words:
         logger.warning("vocabtree: %d descriptors sampled, building %d visual words instead of %d",
-                       len(sample), words, conf.vocab_num_words)
+                       len(sample), words, conf.num_words)
     logger.info("vocabtree: building a tree of %d words from %d descriptors", words, len(sample))
     colmap.build_visual_index(sample, tree_path, num_words=words, num_iterations=TREE_ITERATIONS,
                               seed=ctx.conf.seed)
@@ -99,15 +99,15 @@ def build_tree(ctx: PairContext) -> tuple[Path, dict]:
 
 
 def select(ctx: PairContext) -> PairResult:
-    conf = ctx.conf.pairs
-    if conf.vocab_num_images < 1:
-        raise ValueError(f"pairs.vocab_num_images must be at least 1, got {conf.vocab_num_images}")
+    conf = ctx.conf.vocab_tree
+    if conf.num_images < 1:
+        raise ValueError(f"vocab_tree.num_images must be at least 1, got {conf.num_images}")
     timings: dict[str, float] = {}
-    if conf.vocab_tree_path:
-        tree_path = Path(conf.vocab_tree_path).expanduser()
+    if conf.path:
+        tree_path = Path(conf.path).expanduser()
         if not tree_path.is_file():
             raise FileNotFoundError(
-                f"vocabulary tree not found: {tree_path} (pairs.vocab_tree_path); give a saved pycolmap "
+                f"vocabulary tree not found: {tree_path} (vocab_tree.path); give a saved pycolmap "
                 f"visual index, e.g. the {TREE_NAME} of an earlier run, or leave it empty to build one")
         info: dict = {"tree": str(tree_path), "tree_built": False}
     else:
@@ -116,8 +116,11 @@ def select(ctx: PairContext) -> PairResult:
         timings["build_tree"] = time.perf_counter() - tic
         info.update(tree=str(tree_path), tree_built=not info["tree_reused"])
     tic = time.perf_counter()
-    retrieved = colmap.vocab_tree_retrieval(ctx.db_path, tree_path, conf.vocab_num_images)
+    retrieved = colmap.vocab_tree_retrieval(ctx.db_path, tree_path, conf.num_images)
     pairs = retrieval_pairs(retrieved, ctx.names)
     timings["retrieve"] = time.perf_counter() - tic
-    info.update(num_images=conf.vocab_num_images, num_retrieved=len(retrieved))
+    info.update(num_images=conf.num_images, num_retrieved=len(retrieved))
     return PairResult(pairs, info, timings)
+
+
+SOURCE = PairSource(select=select, sections=lambda conf: ("pairs", "vocab_tree"), caches=(TREE_NAME, TREE_RECORD_NAME))

@@ -26,16 +26,13 @@ from ..export import recorded_images_root
 from ..io import read_json, records
 from ..io.pairs import Pair, read_pairs
 from ..io.scores import read_scores_csv
-from ..pairs.pose_guided import STAGE as POSE_GUIDED_STAGE
-from ..pairs.sara_source import SUPPORT_STAGE
+from ..pipeline.rounds import ROUNDS_STAGE
 
 SELECTED_ROLES = ("tree", "loop", "anchor", "weak", "rescue")
 #: SARA's pairs matched after the first round: for weakly matched views before mapping, the
 #: pose-guided round, and repairs of views left out of the model
 ADDED_ROLES = ("support", "pose-guided", "repair")
 ALL_ROLES = SELECTED_ROLES + ADDED_ROLES + ("selected", "unselected", "rejected")
-#: the records that list the pairs of each added role (the rest are repairs)
-_ADDED_RECORDS = {"support": SUPPORT_STAGE, "pose-guided": POSE_GUIDED_STAGE}
 
 
 @dataclass(frozen=True)
@@ -51,6 +48,7 @@ class Scores:
     reason: list[str]  # "" when accepted
     role: list[str]  # tree | loop | anchor | weak | rescue | unselected | rejected
     num_inliers_all: np.ndarray | None = None  # (E,) int64, among all mutual matches
+    num_matches: np.ndarray | None = None  # (E,) int64, b: the best mutual matches the pre-match kept
 
 
 @dataclass
@@ -106,7 +104,7 @@ def read_scores(path: Path) -> Scores:
         num_inliers=table.num_inliers, overlap=table.overlap, parallax_deg=table.parallax_deg,
         weight=table.weight, accepted=table.accepted, reason=[r.strip() for r in table.reason],
         role=[r.strip() or ("unselected" if a else "rejected") for r, a in zip(roles, table.accepted)],
-        num_inliers_all=table.num_inliers_all,
+        num_inliers_all=table.num_inliers_all, num_matches=table.num_matches,
     )
 
 
@@ -143,13 +141,14 @@ def load_run(out_dir: Path) -> RunData:
 
 
 def _added_roles(out_dir: Path) -> dict[Pair, str]:
-    """Pairs that SARA's records list as added for weak views or by the pose-guided round."""
+    """Pairs the rounds' ledger lists as added after the first selection, with their role."""
+    record = records.read_record(out_dir, ROUNDS_STAGE) or {}
+    added = record.get("info", {}).get("added", {}) if record.get("done") is True else {}
     out: dict[Pair, str] = {}
-    for role, stage in _ADDED_RECORDS.items():
-        record = records.read_record(out_dir, stage) or {}
-        for pair in record.get("info", {}).get("pairs", []) if record.get("done") is True else []:
+    for role, pairs in added.items():
+        for pair in pairs:
             if isinstance(pair, (list, tuple)) and len(pair) == 2:
-                out[_canonical(str(pair[0]), str(pair[1]))] = role
+                out[_canonical(str(pair[0]), str(pair[1]))] = str(role)
     return out
 
 

@@ -2,8 +2,8 @@
 tf-idf bag of visual words, over each image's own local descriptors (RootSIFT, or any learned ones).
 
 VLAD: Jegou et al. 2010, intra-normalisation as in Arandjelovic & Zisserman 2013, with a codebook
-learned by k-means on a capped random sample of the collection's descriptors. `scripts/retrieval_recall.py`
-measures the variants against ground-truth overlaps: PCA-whitening learned from the collection
+learned by k-means on a capped random sample of the collection's descriptors. Measured against
+ground-truth overlaps (`lab/scripts/retrieval_recall.py`) the variants: PCA-whitening learned from the collection
 lowered the recall of strong overlaps on every scene (k = 5 and 10), so it is off; the order of
 intra-normalisation and signed square root made no difference.
 """

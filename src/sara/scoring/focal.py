@@ -10,7 +10,7 @@ singular values. Over a log-spaced grid of f (principal point at the image centr
 the cost of a pair is (s1 - s2) / s1 with s1 >= s2 the two largest singular values of K^T F K, and the
 estimate is the f where the median cost over pairs is smallest.
 
-Measured on the shared scenes (docs/ACCURACY.md, "A long lens"): within 1% of the true focal
+Measured on the shared scenes: within 1% of the true focal
 length on the three Strecha scenes, 1,930-3,064 px against 2,563 px on bm-moldGoldCape (depending
 on the pairs and RANSAC settings), and 1.9-2.8x the prior on quarter-size centre crops of two
 Strecha scenes (true: 3x). On a turntable capture
@@ -22,7 +22,7 @@ Whether an estimate can be trusted at all shows in the shape of the cost curve
 (`FocalEstimate.sound`): on a general capture the cost rises steeply below the estimate and most
 pairs, taken alone, put their own best focal length near it; on the turntables the curve is flat
 below the estimate and the pairs disagree. A sound estimate gives the field of view, which decides
-what kind of spanning tree the selection builds (`sara.pairs.sara_source`, docs/ACCURACY.md 19).
+what kind of spanning tree the selection builds (`sara.pairs.sara.field_of_view`).
 """
 
 from __future__ import annotations
@@ -84,7 +84,7 @@ class FocalEstimate:
 
         A sound estimate shorter than the prior (Strecha's 1,368 px against a prior of 1,843 px, the
         truth 1,380) is not applied: with it, SARA's AUC@1 fell on four of seven Strecha scenes and
-        stand-ins and exhaustive matching's moved both ways (docs/ACCURACY.md 19.2). It still tells the
+        stand-ins and exhaustive matching's moved both ways. It still tells the
         field of view (`field_of_view_deg`).
         """
         return self.focal_px >= LONGER_THAN_PRIOR * prior_px

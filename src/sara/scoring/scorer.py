@@ -20,7 +20,7 @@ b of them inliers, so their weights tie, and a spanning tree of ``w`` is decided
 pairs (by name). The scorer therefore also counts ``num_inliers_all``: the mutual nearest neighbours
 among *all* M keypoints that fit the pose RANSAC found (the same error threshold). It does not
 saturate, and it ranks pairs by how many matches a full matching verifies better than
-``num_inliers`` does (docs/ACCURACY.md, section 16). The spanning tree can use it
+``num_inliers`` does. The spanning tree can use it
 (`ScoreConfig.tree_overlap`; by default only where the field of view is known to be wide: trees of
 the most overlapping pairs have short baselines, which long lenses pay for).
 

@@ -6,7 +6,6 @@ from .augment import (
     SELECTED_ROLES,
     Selection,
     capped_budgets,
-    first_round_cap,
     loop_gain,
     loop_length_thresholds,
     select_pairs,
@@ -20,6 +19,6 @@ from .spanning import (
 )
 
 __all__ = [
-    "ROLES", "SELECTED_ROLES", "RootedForest", "Selection", "capped_budgets", "connected_components", "first_round_cap", "loop_gain",
+    "ROLES", "SELECTED_ROLES", "RootedForest", "Selection", "capped_budgets", "connected_components", "loop_gain",
     "loop_length_thresholds", "maximum_spanning_forest", "select_pairs", "tree_path_lengths", "weak_views",
 ]

@@ -235,22 +235,6 @@ class Selection:
         }
 
 
-def first_round_cap(num_images: int, conf: GraphConfig) -> int:
-    """Most pairs of the first round: the cap of all rounds (`GraphConfig.pair_cap`) less what the
-    pose-guided round after mapping keeps for itself (the spanning forest is kept regardless).
-    With `densify` the first round is the usual selection within the cap, and the pose-guided round
-    adds to it up to `GraphConfig.densify_cap`."""
-    if conf.densify:
-        return conf.pair_cap(num_images)
-    cap = conf.pair_cap(num_images)
-    reserve = math.ceil(conf.pose_guided_pairs_per_image * num_images - 1e-9)
-    # where the cap leaves little beyond the spanning tree (small collections, where 25% of the
-    # exhaustive pairs binds), the round keeps at most half of that room: a first model built on
-    # the bare tree leaves views out, and mapping again for them costs more than the round saves
-    room = max(0, cap - max(num_images - 1, 0))
-    return max(0, cap - min(reserve, room // 2))
-
-
 def capped_budgets(budgets: dict[str, int], room: int) -> dict[str, int]:
     """The augmentation budgets scaled down (floor, in proportion) so that they sum to at most `room`."""
     total = sum(budgets.values())
@@ -300,7 +284,7 @@ def select_pairs(
         accepted: (E,) bool; rejected pairs are never selected.
         conf: budgets and thresholds; defaults to ``GraphConfig()``.
         max_pairs: at most this many pairs in all (the augmentation budgets shrink in proportion;
-            the spanning forest is always kept); None: no cap. See `first_round_cap`.
+            the spanning forest is always kept); None: no cap. The caller's pair budget gives it (SARA: `sara.pairs.sara.budget`).
         tree_weight: (E,) float64 the weight the spanning forest maximises (finite and >= 0 for
             accepted pairs); None: ``weight``. The augmentation always ranks by ``weight``.
     Returns:

@@ -1,0 +1,213 @@
+"""A COLMAP database opened through pycolmap: the file's life (create, copy, replace, remove), its
+images and cameras, the keypoints and matches that sara writes, and the edits of the matching stage.
+
+Every function takes the database's path and returns sara's types (names, ids, arrays); pycolmap's
+`Database` object stays inside the adapter. Read-only queries that must leave the file's bytes as
+they are go through SQLite instead (`database_queries`).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+
+from ..io import atomic_path
+from .native import native_errors
+
+_CAMERA_MODES = {
+    "single": pycolmap.CameraMode.SINGLE,
+    "per_image": pycolmap.CameraMode.PER_IMAGE,
+    "per_folder": pycolmap.CameraMode.PER_FOLDER,
+    "auto": pycolmap.CameraMode.AUTO,
+}
+
+
+@contextlib.contextmanager
+def open_pycolmap_database(path: Path) -> Iterator[pycolmap.Database]:
+    """pycolmap's `Database` of `path`, closed on exit; for the modules of this adapter only."""
+    with native_errors(f"open the database {path}", Path(path).parent):
+        db = pycolmap.Database.open(str(path))
+    try:
+        yield db
+    finally:
+        db.close()
+
+
+# ---------------------------------------------------------------------------------------------
+# The file
+# ---------------------------------------------------------------------------------------------
+
+
+def create_database(path: Path) -> None:
+    """An empty COLMAP database at `path` (its tables, no images)."""
+    with native_errors(f"create the database {path}", Path(path).parent):
+        pycolmap.Database.open(str(path)).close()
+
+
+def copy_database(src: Path, dst: Path) -> None:
+    """Copy a COLMAP database consistently (its WAL included) through SQLite's backup API."""
+    import sqlite3
+
+    with atomic_path(dst) as tmp:
+        source = sqlite3.connect(f"file:{src}?mode=rw", uri=True)  # rw: its log is merged and removed on close
+        target = sqlite3.connect(tmp)
+        try:
+            source.backup(target)
+        finally:
+            target.close()
+            source.close()
+
+
+def remove_database(path: Path) -> None:
+    """Delete a database with its SQLite write-ahead log and index (`-wal`, `-shm`): a log left by
+    a killed run must never be replayed onto a newer file of the same name."""
+    for suffix in ("", "-wal", "-shm", "-journal"):
+        Path(f"{path}{suffix}").unlink(missing_ok=True)
+
+
+def replace_database(src: Path, dst: Path) -> None:
+    """Move a finished database (closed, so its log is merged) onto `dst`, dropping `dst`'s log."""
+    for suffix in ("-wal", "-shm", "-journal"):
+        Path(f"{dst}{suffix}").unlink(missing_ok=True)
+    os.replace(src, dst)
+
+
+# ---------------------------------------------------------------------------------------------
+# Images and cameras
+# ---------------------------------------------------------------------------------------------
+
+
+def import_images(db_path: Path, image_dir: Path, names: list[str], *, camera_mode: str, camera_model: str,
+                  camera_params: str = "", default_focal_length_factor: float = 1.2) -> None:
+    """Add images and their cameras to the database (no features yet)."""
+    opts = pycolmap.ImageReaderOptions()
+    opts.camera_model = camera_model
+    opts.camera_params = camera_params
+    opts.default_focal_length_factor = default_focal_length_factor
+    with native_errors("import the images into the database", Path(db_path).parent):
+        pycolmap.import_images(
+            str(db_path), str(image_dir), camera_mode=_CAMERA_MODES[camera_mode], image_names=names, options=opts
+        )
+
+
+def image_ids(db_path: Path) -> dict[str, int]:
+    """name -> image_id of every image, in the database's order, read through pycolmap (which
+    writes to the file: `database_images` reads the same without touching it)."""
+    with open_pycolmap_database(db_path) as db:
+        return image_ids_in(db)
+
+
+def image_ids_in(db: pycolmap.Database) -> dict[str, int]:
+    """`image_ids` of a database open in this adapter."""
+    return {im.name: im.image_id for im in db.read_all_images()}
+
+
+def rename_images(db_path: Path, new_names: dict[int, str]) -> None:
+    """Give the images of `new_names` (image_id -> name) their new names."""
+    with open_pycolmap_database(db_path) as db:
+        for image_id, name in new_names.items():
+            image = db.read_image(image_id)
+            image.name = name
+            db.update_image(image)
+
+
+def cameras_by_image(db_path: Path) -> dict[str, pycolmap.Camera]:
+    """name -> the pycolmap.Camera (intrinsics as imported: EXIF focal or COLMAP's prior)."""
+    with open_pycolmap_database(db_path) as db:
+        cams = {c.camera_id: c for c in db.read_all_cameras()}
+        return {im.name: cams[im.camera_id] for im in db.read_all_images()}
+
+
+def shared_camera(db_path: Path) -> pycolmap.Camera | None:
+    """The database's camera when every image uses one and the same, else None."""
+    with open_pycolmap_database(db_path) as db:
+        cameras = db.read_all_cameras()
+    return cameras[0] if len(cameras) == 1 else None
+
+
+def set_focal_length(db_path: Path, camera_id: int, focal_px: float) -> None:
+    """Replace the focal length of one camera of the database (other parameters kept, still a guess
+    for bundle adjustment to refine: `has_prior_focal_length` stays as it was)."""
+    with open_pycolmap_database(db_path) as db:
+        camera = db.read_camera(camera_id)
+        for index in camera.focal_length_idxs():
+            camera.params[index] = focal_px
+        db.update_camera(camera)
+
+
+# ---------------------------------------------------------------------------------------------
+# Keypoints, matches and two-view geometries
+# ---------------------------------------------------------------------------------------------
+
+
+def write_keypoints(db_path: Path, keypoints: dict[str, np.ndarray]) -> None:
+    """Store (N, 2) float32 keypoints (COLMAP's pixel convention) of images already in the database."""
+    with open_pycolmap_database(db_path) as db:
+        ids = image_ids_in(db)
+        for name, xy in keypoints.items():
+            if db.exists_keypoints(ids[name]):
+                continue
+            db.write_keypoints(ids[name], np.ascontiguousarray(xy, dtype=np.float32).reshape(-1, 2))
+
+
+def write_matches(db_path: Path, matches: dict[tuple[str, str], np.ndarray]) -> None:
+    """Store (K, 2) index matches of image pairs (by name), replacing unverified ones left by a killed run."""
+    with open_pycolmap_database(db_path) as db:
+        ids = image_ids_in(db)
+        for (name0, name1), m in matches.items():
+            id0, id1 = ids[name0], ids[name1]
+            if db.exists_two_view_geometry(id0, id1):
+                db.delete_two_view_geometry(id0, id1)
+            if db.exists_matches(id0, id1):
+                db.delete_matches(id0, id1)
+            db.write_matches(id0, id1, np.ascontiguousarray(m, dtype=np.uint32).reshape(-1, 2))
+
+
+def verified_image_pairs(db_path: Path) -> list[tuple[int, int, int]]:
+    """(image_id0, image_id1, num_inliers) of every pair with a two-view geometry, id0 < id1."""
+    with open_pycolmap_database(db_path) as db:
+        return _verified_image_pairs(db)
+
+
+def _verified_image_pairs(db: pycolmap.Database) -> list[tuple[int, int, int]]:
+    pair_ids, num_inliers = db.read_two_view_geometry_num_inliers()
+    out = []
+    for pair_id, n in zip(pair_ids, num_inliers):
+        i, j = sorted(pycolmap.pair_id_to_image_pair(int(pair_id)))
+        out.append((int(i), int(j), int(n)))
+    return out
+
+
+def two_view_inlier_counts(db_path: Path) -> np.ndarray:
+    """(P,) int64 inlier matches of every pair with a two-view geometry (zero where it failed)."""
+    with open_pycolmap_database(db_path) as db:
+        _, num_inliers = db.read_two_view_geometry_num_inliers()
+    return np.asarray(num_inliers, dtype=np.int64)
+
+
+def has_two_view_geometry(db_path: Path, id_pairs: list[tuple[int, int]]) -> list[bool]:
+    """Whether each (image_id0, image_id1) pair has a two-view geometry (in either order)."""
+    with open_pycolmap_database(db_path) as db:
+        return [bool(db.exists_two_view_geometry(i, j)) for i, j in id_pairs]
+
+
+def clear_matches(db_path: Path) -> None:
+    """Delete every match and two-view geometry (images, cameras and features kept)."""
+    with open_pycolmap_database(db_path) as db:
+        db.clear_matches()
+        db.clear_two_view_geometries()
+
+
+def delete_pairs_except(db_path: Path, keep: set[tuple[int, int]]) -> None:
+    """Delete the matches and two-view geometry of every pair with a geometry that is not in `keep`
+    ((image_id0, image_id1) with id0 < id1)."""
+    with open_pycolmap_database(db_path) as db:
+        for i, j, _ in _verified_image_pairs(db):
+            if (i, j) not in keep:
+                db.delete_matches(i, j)
+                db.delete_two_view_geometry(i, j)

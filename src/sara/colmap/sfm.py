@@ -1,0 +1,116 @@
+"""Structure from motion: COLMAP's incremental and global mappers, its bundle adjustment, and the
+mapper's output written as numbered model folders."""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+from collections.abc import Callable
+from pathlib import Path
+
+import pycolmap
+
+from .native import native_errors
+
+logger = logging.getLogger(__name__)
+
+
+def mapper_init_requirements() -> tuple[int, float]:
+    """(inlier matches, triangulation angle in degrees) that COLMAP's incremental mapper needs
+    between two views to start a model."""
+    opts = pycolmap.IncrementalPipelineOptions()
+    return int(opts.mapper.init_min_num_inliers), float(opts.mapper.init_min_tri_angle)
+
+
+def incremental_mapping(
+    db_path: Path, image_dir: Path, out_dir: Path, *, seed: int, min_model_size: int,
+    abs_pose_min_num_inliers: int, abs_pose_min_inlier_ratio: float, num_threads: int = -1,
+    on_next_image: Callable[[], None] | None = None, input_path: Path | None = None,
+) -> dict[int, pycolmap.Reconstruction]:
+    """COLMAP's incremental mapper; with `input_path` it continues from that model (registers the
+    images it lacks, then bundle-adjusts) instead of starting from an empty one."""
+    opts = pycolmap.IncrementalPipelineOptions()
+    opts.min_model_size = min_model_size
+    opts.num_threads = num_threads
+    opts.mapper.abs_pose_min_num_inliers = abs_pose_min_num_inliers
+    opts.mapper.abs_pose_min_inlier_ratio = abs_pose_min_inlier_ratio
+    opts.random_seed = seed
+    opts.mapper.random_seed = seed
+    opts.triangulation.random_seed = seed
+    with native_errors("map the matches (incremental mapper)", Path(out_dir)):
+        return pycolmap.incremental_mapping(
+            str(db_path), str(image_dir), str(out_dir), options=opts,
+            input_path=str(input_path) if input_path is not None else "",
+            next_image_callback=on_next_image,
+        )
+
+
+def global_mapping(db_path: Path, image_dir: Path, out_dir: Path, *, seed: int,
+                   num_threads: int = -1) -> dict[int, pycolmap.Reconstruction]:
+    """COLMAP's global mapper (GLOMAP); the settings this pycolmap lacks are left at its defaults."""
+    opts = pycolmap.GlobalPipelineOptions()
+    with contextlib.suppress(AttributeError):
+        opts.num_threads = num_threads
+    with contextlib.suppress(AttributeError):
+        opts.random_seed = seed
+    with native_errors("map the matches (global mapper)", Path(out_dir)):
+        return pycolmap.global_mapping(str(db_path), str(image_dir), str(out_dir), options=opts)
+
+
+def bundle_adjust(rec: pycolmap.Reconstruction, options: pycolmap.BundleAdjustmentOptions | None = None) -> None:
+    """COLMAP's global bundle adjustment of `rec` (`pycolmap.bundle_adjustment`) without its console output.
+
+    pycolmap's call switches COLMAP's log to the console (glog's alsologtostderr, minloglevel 0) and
+    leaves it so: its report, and every later COLMAP message of the process, then reached the terminal
+    even with `--quiet`. Unless the log already goes to the console (`--verbose`), its own report is
+    kept off the terminal (it still reaches the log file) and the log settings are put back afterwards.
+    """
+    import sys
+
+    log = pycolmap.logging
+    saved = (log.logtostderr, log.alsologtostderr, log.stderrthreshold, log.minloglevel)
+    to_console = saved[0] or saved[1]
+    options = options or pycolmap.BundleAdjustmentOptions()
+    if to_console:
+        pycolmap.bundle_adjustment(rec, options)
+        return
+    sys.stderr.flush()
+    kept = os.dup(2)
+    try:
+        with open(os.devnull, "wb") as sink:
+            os.dup2(sink.fileno(), 2)
+        pycolmap.bundle_adjustment(rec, options)
+    finally:
+        os.dup2(kept, 2)
+        os.close(kept)
+        log.logtostderr, log.alsologtostderr, log.stderrthreshold, log.minloglevel = saved
+
+
+def write_models_by_size(folder: Path, recs: dict[int, pycolmap.Reconstruction]) -> list[int]:
+    """Write mapper output as `folder/0, 1, ...`, 0 the largest; returns registered images per model.
+
+    A model whose images are all in a larger one is left out: continuing from an input model, COLMAP's
+    mapper can build a new model holding every view and keep the input beside it.
+    """
+    import shutil
+
+    order, seen = [], set()
+    for key, rec in sorted(recs.items(), key=lambda kv: (-kv[1].num_reg_images(), kv[0])):
+        names = {im.name for im in rec.images.values() if im.has_pose}
+        if names and names <= seen:
+            logger.info("map: left out a model of %d views that a larger model holds as well", len(names))
+            continue
+        seen |= names
+        order.append((key, rec))
+    for sub in list(Path(folder).iterdir()):
+        if sub.is_dir():
+            shutil.rmtree(sub)
+    sizes = []
+    for new_index, (_, rec) in enumerate(order):
+        dst = Path(folder) / str(new_index)
+        dst.mkdir()
+        with native_errors(f"write the model {dst}", Path(folder)):
+            rec.write(str(dst))
+        sizes.append(int(rec.num_reg_images()))
+    return sizes

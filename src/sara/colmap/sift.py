@@ -1,0 +1,110 @@
+"""COLMAP's SIFT: its image reader, its extraction into the database or of one image in memory, and
+reading the stored features back as arrays.
+
+Keypoints are in COLMAP's pixel convention (centre of the top-left pixel at (0.5, 0.5)); scales in
+pixels; descriptors uint8 RootSIFT as COLMAP stores them.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from pathlib import Path
+from types import TracebackType
+from typing import Self
+
+import numpy as np
+import pycolmap
+
+from .database import image_ids_in, open_pycolmap_database
+from .native import native_errors
+
+
+def image_read_problem(path: Path) -> str | None:
+    """Why COLMAP's image reader (the one its SIFT extraction uses) cannot decode a file, or None."""
+    try:
+        bitmap = pycolmap.Bitmap.read(str(path), as_rgb=False)
+    except (RuntimeError, ValueError, OSError) as exc:
+        return f"COLMAP's image reader fails on it ({exc})"
+    if bitmap is None or bitmap.width <= 0 or bitmap.height <= 0:
+        return "COLMAP's image reader cannot decode it (a format COLMAP does not read, whatever its extension)"
+    return None
+
+
+def extract_sift(db_path: Path, image_dir: Path, names: list[str], *, max_image_size: int, max_num_features: int,
+                 camera_model: str, camera_params: str = "", num_threads: int = -1) -> None:
+    """SIFT (RootSIFT, COLMAP defaults) for images already imported; images with features are skipped."""
+    opts = pycolmap.FeatureExtractionOptions()
+    opts.max_image_size = max_image_size
+    opts.num_threads = num_threads
+    opts.sift.max_num_features = max_num_features
+    reader = pycolmap.ImageReaderOptions()
+    reader.camera_model = camera_model
+    reader.camera_params = camera_params
+    with native_errors("extract SIFT features", Path(db_path).parent):
+        pycolmap.extract_features(
+            str(db_path), str(image_dir), image_names=names, reader_options=reader,
+            extraction_options=opts, device=pycolmap.Device.cpu,
+        )
+
+
+def sift_of_image(image: np.ndarray, *, max_num_features: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """COLMAP's SIFT of one (H, W, 3) or (H, W) uint8 image: as :meth:`FeatureReader.read_sift`."""
+    gray = np.asarray(image, dtype=np.float32)
+    if gray.ndim == 3:
+        gray = gray @ np.array([0.299, 0.587, 0.114], dtype=np.float32)
+    opts = pycolmap.SiftExtractionOptions()
+    opts.max_num_features = max_num_features
+    sift = pycolmap.Sift(opts, device=pycolmap.Device.cpu)
+    kp, desc = sift.extract(gray / 255.0)
+    kp = np.asarray(kp, dtype=np.float32)
+    return _split_keypoints(kp, np.asarray(desc))
+
+
+class FeatureReader:
+    """The SIFT features stored in a database, read as arrays: ``with FeatureReader(db_path) as r:``.
+
+    The database is opened once for all the images read (each open checks its schema).
+    """
+
+    def __init__(self, db_path: Path):
+        self.path = Path(db_path)
+        self._stack = contextlib.ExitStack()
+        self._db: pycolmap.Database | None = None
+
+    def __enter__(self) -> Self:
+        self._db = self._stack.enter_context(open_pycolmap_database(self.path))
+        return self
+
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:
+        self._db = None
+        self._stack.close()
+
+    def _open(self) -> pycolmap.Database:
+        if self._db is None:
+            raise RuntimeError("FeatureReader is read inside its `with` block only")
+        return self._db
+
+    def image_ids(self) -> dict[str, int]:
+        """name -> image_id of every image of the database, in its order."""
+        return image_ids_in(self._open())
+
+    def read_sift(self, image_id: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Keypoints (N, 2) float32 COLMAP pixels, scales (N,) float32 px, descriptors (N, 128) uint8."""
+        db = self._open()
+        kp = np.asarray(db.read_keypoints(image_id), dtype=np.float32)
+        desc = np.asarray(db.read_descriptors(image_id).data)
+        return _split_keypoints(kp, desc)
+
+
+def _split_keypoints(kp: np.ndarray, desc: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """COLMAP's keypoint rows (x, y[, scale[, orientation]] or x, y, a11, a12, a21, a22) -> xy, scale."""
+    if len(kp) == 0:
+        return np.zeros((0, 2), np.float32), np.zeros(0, np.float32), np.zeros((0, 128), np.uint8)
+    if kp.shape[1] >= 6:  # affine shape a11 a12 a21 a22: scale = sqrt(|det|)
+        scale = np.sqrt(np.abs(kp[:, 2] * kp[:, 5] - kp[:, 3] * kp[:, 4]))
+    elif kp.shape[1] >= 3:
+        scale = kp[:, 2]
+    else:
+        scale = np.ones(len(kp), np.float32)
+    return kp[:, :2].copy(), scale.astype(np.float32), desc.astype(np.uint8, copy=False)

@@ -1,0 +1,57 @@
+"""Closing the loop after mapping: when the model splits although SARA's view graph is connected,
+match a few more candidate pairs that link the left-out views to the main model, then map again.
+
+A sparse selection can leave a group of views hanging on one or two pairs; COLMAP may then fail
+to register them into the main model and start a separate one. The candidates that the scorer
+ranked below the selection (scores.csv) name the next best links; a handful per left-out view
+usually suffices. Views that SARA itself found unconnected (another scene) are left alone.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+
+from ...io.pairs import Pair
+from ...io.scores import read_scores_csv
+from ...selection import connected_components
+
+logger = logging.getLogger(__name__)
+
+
+def left_out_views(names: list[str], pairs: list[Pair], main: set[str]) -> list[str]:
+    """Views outside the main model but in the selected graph's component of the main model."""
+    if not main:
+        return []
+    index = {n: i for i, n in enumerate(names)}
+    edges = np.array([sorted((index[a], index[b])) for a, b in pairs], dtype=np.int64).reshape(-1, 2)
+    labels = connected_components(len(names), edges)
+    main_labels = np.bincount([labels[index[n]] for n in main if n in index])
+    main_label = int(np.argmax(main_labels))
+    return [n for n in names if labels[index[n]] == main_label and n not in main]
+
+
+def repair_pairs(scores_csv: Path, pairs: list[Pair], main: set[str], left_out: list[str],
+                 per_view: int) -> list[Pair]:
+    """For each left-out view, its best unselected candidates into the main model: by the RANSAC
+    pose's inliers among all mutual matches (`num_inliers_all`, which does not saturate at the b
+    best matches and predicts a full matching's inliers better)."""
+    chosen = {tuple(sorted(p)) for p in pairs}
+    targets = set(left_out)
+    options: dict[str, list[tuple[int, Pair]]] = defaultdict(list)
+    scores, _ = read_scores_csv(scores_csv)
+    for k, (a, b) in enumerate(zip(scores.name0, scores.name1)):
+        pair = tuple(sorted((a, b)))
+        if pair in chosen or scores.reason[k] == "no_model":
+            continue
+        for view, other in ((a, b), (b, a)):
+            if view in targets and other in main:
+                options[view].append((int(scores.num_inliers_all[k]), pair))
+    extra: list[Pair] = []
+    for view in left_out:
+        ranked = sorted(options[view], key=lambda item: (-item[0], item[1]))
+        extra += [pair for _, pair in ranked[:per_view]]
+    return sorted(set(extra))

@@ -1,0 +1,186 @@
+"""SARA's rounds around mapping, behind the `sara.pairs.Rounds` seam:
+
+- before the first mapping, `support` pairs for views whose matched pairs hold few inliers;
+- after it, `repair` pairs for views the mapper left out of the main model, or else, once, the
+  `pose-guided` pairs the first model predicts to add the most observations; the model is then
+  refined with its poses fixed instead of mapped again (`pose_guided.refine`);
+- on the final model, when no refinement did it, its tracks are extended (`pose_guided.finish`).
+
+Every round takes its pairs from the one ledger, `budget.PairBudget`.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ... import colmap, selection
+from ...io import fingerprint, records
+from ...io.pairs import Pair
+from ...io.scores import read_scores_csv
+from .. import NoRounds, PairContext, Round
+from . import pose_guided
+from .budget import PairBudget
+from .repair import left_out_views, repair_pairs
+from .source import SCORES_NAME
+from .support import support_pairs, view_inliers
+
+logger = logging.getLogger(__name__)
+
+#: record of the last repair round: the views it was for and the pairs it led to
+REPAIR_STAGE = "repair_views"
+#: record of the pairs added before the first mapping for weakly matched views
+SUPPORT_STAGE = "support"
+
+
+def budget_of(ctx: PairContext) -> PairBudget:
+    return PairBudget(len(ctx.names), ctx.conf.budget, ctx.conf.rounds)
+
+
+class SaraRounds(NoRounds):
+    """SARA's `sara.pairs.Rounds`."""
+
+    def before_mapping(self, ctx: PairContext, pairs: list[Pair], db_path: Path) -> Round:
+        return Round(before_mapping(ctx, pairs, db_path), "support")
+
+    def after_mapping(self, ctx: PairContext, pairs: list[Pair], model_dir: Path) -> Round:
+        return after_mapping(ctx, pairs, model_dir)
+
+    def refine(self, ctx: PairContext, added: Round, db_path: Path, model_dir: Path,
+               out_model_dir: Path) -> dict[str, Any] | None:
+        return pose_guided.refine(ctx, added.pairs, db_path, model_dir, out_model_dir)
+
+    def finish(self, ctx: PairContext, model_dir: Path, out_model_dir: Path, *, refined: bool) -> dict[str, Any] | None:
+        return pose_guided.finish(ctx, model_dir, out_model_dir, refined=refined)
+
+
+def after_mapping(ctx: PairContext, pairs: list[Pair], model_dir: Path) -> Round:
+    """More pairs once a model exists, within the cap of all rounds (`BudgetConfig.pair_cap`):
+
+    1. views that the mapper left out of the main model although the selected graph joins them to
+       it: their best unselected candidates into the main model (`repair.py`), unless the last
+       round was such a repair and most of its views are still out (`_repair_stalled`);
+    2. otherwise, once: the pose-guided round (`pose_guided.py`), the unmatched pairs of registered
+       views that the model predicts to add the most observations.
+
+    Returns the pairs and their role (`repair` or `pose-guided`).
+    """
+    main = colmap.registered_images(model_dir)
+    left_out = left_out_views(ctx.names, pairs, main)
+    key = _selection_key(ctx) if left_out else ""
+    if left_out and not _repair_stalled(ctx, key, pairs, left_out):
+        extra = repair_pairs(ctx.out_dir / SCORES_NAME, pairs, main, left_out, ctx.conf.rounds.repair_pairs_per_view)
+        room = budget_of(ctx).repair(len(pairs), len(left_out))
+        extra = extra[:room] if len(extra) > room else extra
+        if extra:
+            logger.warning("%d views were left out of the main model: matching %d more pairs and mapping again",
+                           len(left_out), len(extra))
+            records.mark_done(ctx.out_dir, REPAIR_STAGE, key,
+                              {"left_out": sorted(left_out), "pairs": _pairs_key(pairs + extra), "stalled": False})
+        return Round(extra, "repair")
+    return Round(pose_guided_round(ctx, pairs, model_dir), "pose-guided")
+
+
+def before_mapping(ctx: PairContext, pairs: list[Pair], db_path: Path) -> list[Pair]:
+    """More pairs, matched before the first mapping, for the views whose verified pairs in `db_path`
+    hold few inlier matches (`support.py`), within half of the room the pair budget leaves (the
+    pose-guided round after mapping keeps the rest); once per selection: [] once they are matched,
+    the same pairs again after an interruption."""
+    conf = ctx.conf.rounds
+    if conf.support_min_view_inliers <= 0 or conf.support_pairs_per_view <= 0:
+        return []
+    key = fingerprint({"selection": _selection_key(ctx), "min_view_inliers": conf.support_min_view_inliers,
+                       "per_view": conf.support_pairs_per_view})
+    record = records.read_record(ctx.out_dir, SUPPORT_STAGE)
+    if record and record.get("done") is True and record.get("key") == key:
+        return _still_to_match([(a, b) for a, b in record.get("info", {}).get("pairs", [])], pairs)
+    support = view_inliers(ctx.names, pairs, colmap.verified_inliers(db_path, ctx.conf.match.min_num_inliers))
+    weak = sum(1 for s in support.values() if s < conf.support_min_view_inliers)
+    extra = support_pairs(ctx.out_dir / SCORES_NAME, pairs, support, conf.support_min_view_inliers,
+                          conf.support_pairs_per_view, budget_of(ctx).support(len(pairs)),
+                          order=view_inliers(ctx.names, pairs, colmap.match_counts(db_path))) if weak else []
+    records.mark_done(ctx.out_dir, SUPPORT_STAGE, key, {
+        "num_weak_views": weak, "view_inliers_median": float(np.median(list(support.values()) or [0])),
+        "pairs": [list(p) for p in extra]})
+    if extra:
+        logger.info("%d views have fewer than %d verified inlier matches in all: matching %d more pairs before "
+                    "mapping", weak, conf.support_min_view_inliers, len(extra))
+    return extra
+
+
+def _still_to_match(chosen: list[Pair], pairs: list[Pair]) -> list[Pair]:
+    """Pairs a round chose before: none once they are all matched, all of them again when a run
+    stopped before they were."""
+    matched = {tuple(sorted(p)) for p in pairs}
+    return [] if all(tuple(sorted(p)) in matched for p in chosen) else chosen
+
+
+def _pairs_key(pairs: list[Pair]) -> str:
+    return fingerprint(sorted(tuple(sorted(p)) for p in pairs))
+
+
+def _repair_stalled(ctx: PairContext, key: str, pairs: list[Pair], left_out: list[str]) -> bool:
+    """True when most views of the last repair round are still out of the main model (and no other
+    view has dropped out since); `key`: the selection the record must belong to (`_selection_key`).
+
+    That round's pairs, each left-out view's best candidates into the model, did not tie them to
+    it; the next best are weaker still, and every repair round maps again (on a low-texture
+    scene, 4 s a round against 2.7 s for exhaustive matching's whole mapping, which leaves the
+    same views out). The views stay out, with a warning, and the rounds go to the pose-guided
+    pairs of the views in the model.
+    """
+    record = records.read_record(ctx.out_dir, REPAIR_STAGE)
+    if not record or record.get("done") is not True or record.get("key") != key:
+        return False
+    info = record.get("info", {})
+    before = set(info.get("left_out", []))
+    if info.get("stalled"):
+        return set(left_out) <= before
+    still = before & set(left_out)
+    if info.get("pairs") != _pairs_key(pairs) or set(left_out) - before or 2 * len(still) <= len(before):
+        return False
+    records.mark_done(ctx.out_dir, REPAIR_STAGE, key, {**info, "stalled": True})
+    logger.warning("%d of the %d views of the last repair round are still out of the main model: leaving them out",
+                   len(still), len(before))
+    return True
+
+
+def _selection_key(ctx: PairContext) -> str:
+    """The first round's pairs: a record of another selection does not apply."""
+    scores = ctx.out_dir / SCORES_NAME
+    return _pairs_key(_first_round(scores)) if scores.exists() else ""
+
+
+def pose_guided_round(ctx: PairContext, pairs: list[Pair], model_dir: Path) -> list[Pair]:
+    """The pose-guided pairs (once per selection; [] when done, disabled or nothing is worth it)."""
+    conf = ctx.conf
+    if (conf.rounds.pose_guided_pairs_per_image <= 0 and not conf.budget.densify) or not colmap.has_model(model_dir):
+        return []
+    key = pose_guided.selection_key(_first_round(ctx.out_dir / SCORES_NAME), conf)
+    done = pose_guided.recorded_pairs(ctx.out_dir, key)
+    if done is not None:
+        return _still_to_match(done, pairs)
+    extra, info = pose_guided.select_extra(ctx, pairs, model_dir)
+    pose_guided.mark_chosen(ctx.out_dir, key, extra, info)
+    if extra:
+        logger.info("pose-guided round: matching %d more pairs (predicted covisible points, median %.0f)",
+                    len(extra), info.get("predicted_covisible_median", 0.0))
+    return extra
+
+
+def _first_round(scores_csv: Path) -> list[Pair]:
+    scores, roles = read_scores_csv(scores_csv)
+    roles = roles or [""] * len(scores)
+    return [(a, b) for a, b, r in zip(scores.name0, scores.name1, roles)
+            if r in selection.SELECTED_ROLES or r == "rescue"]
+
+
+#: the pipeline may refine the model after the pose-guided round instead of mapping again
+after_mapping.refine = pose_guided.refine  # type: ignore[attr-defined]
+#: and extend the final model's tracks when no refinement did
+after_mapping.finish = pose_guided.finish  # type: ignore[attr-defined]
+#: before the first mapping: more pairs for weakly matched views
+after_mapping.before_mapping = before_mapping  # type: ignore[attr-defined]

@@ -1,0 +1,214 @@
+"""The SARA pair source: retrieval -> pre-matching scores -> information-weighted spanning tree
+-> loop, anchor and weak-view augmentation.
+
+Beyond the paper: views whose every candidate was rejected for low parallax (near-duplicates,
+pure rotations) are not dropped. They carry no new geometry, but a user still wants them posed,
+so the best such pair by overlap "rescues" them, and likewise joins components of the selected
+graph that only low-parallax pairs connect. Views with no overlapping candidate at all (another
+scene) stay apart: the selected graph's components are reported and each maps to its own model.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import replace
+from itertools import combinations
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ... import retrieval, scoring, selection
+from ...descriptors import top_k_cosine
+from ...io.pairs import Pair
+from ...io.scores import concat_scores, write_scores_csv
+from .. import PairContext, PairResult
+from .budget import PairBudget
+from .field_of_view import resolve_tree_overlap
+
+logger = logging.getLogger(__name__)
+
+SCORES_NAME = "scores.csv"
+RESCUE_REASON = "low_parallax"
+
+
+def select(ctx: PairContext) -> PairResult:
+    conf = ctx.conf
+    timings: dict[str, float] = {}
+    tic = time.perf_counter()
+    names, edges, desc = _candidates(ctx)
+    timings["retrieval"] = time.perf_counter() - tic
+
+    tic = time.perf_counter()
+    candidates: list[Pair] = [(names[i], names[j]) for i, j in edges]
+    scores = _score(ctx, candidates)
+    timings["scoring"] = time.perf_counter() - tic
+
+    tic = time.perf_counter()
+    tree_overlap, field_of_view = resolve_tree_overlap(ctx)
+    conf = replace(conf, score=replace(conf.score, tree_overlap=tree_overlap))
+    roles, chosen_graph, rescued = _choose(len(names), edges, scores, conf)
+    timings["graph"] = time.perf_counter() - tic
+
+    widened = 0
+    for neighbors in _widen_schedule(conf.retrieval.widen_neighbors, len(names)):
+        labels = selection.connected_components(len(names), _selected_edges(edges, roles))
+        new_edges = widen_candidates(desc, edges, labels, neighbors) if desc is not None else edges[:0]
+        if len(new_edges) == 0:
+            break
+        tic = time.perf_counter()
+        logger.info("the selected graph has %d components: scoring %d more candidates from %d neighbours of "
+                    "the views outside the largest one", int(labels.max()) + 1, len(new_edges), neighbors)
+        new_candidates = [(names[i], names[j]) for i, j in new_edges]
+        scores = concat_scores(scores, _score(ctx, new_candidates))
+        edges, candidates = np.concatenate([edges, new_edges]), candidates + new_candidates
+        widened += len(new_edges)
+        timings["scoring"] += time.perf_counter() - tic
+        tic = time.perf_counter()
+        roles, chosen_graph, rescued = _choose(len(names), edges, scores, conf)
+        timings["graph"] += time.perf_counter() - tic
+
+    write_scores_csv(ctx.out_dir / SCORES_NAME, scores, roles)
+    chosen = [candidates[e] for e, role in enumerate(roles) if role in selection.SELECTED_ROLES or role == "rescue"]
+    labels = selection.connected_components(len(names), _selected_edges(edges, roles))
+    info = {
+        "num_candidates": len(candidates),
+        "num_widened": widened,
+        "num_accepted": int(scores.accepted.sum()),
+        "rejected": _count(r for r in scores.reason if r),
+        "num_rescued": rescued,
+        "tree_overlap": tree_overlap,
+        "tree_overlap_setting": ctx.conf.score.tree_overlap,
+        "field_of_view_deg": field_of_view,
+        "graph": chosen_graph.stats(),
+        "selected_components": _component_sizes(labels),
+    }
+    sizes = info["selected_components"]
+    if len(sizes) > 1:
+        logger.warning("the selected view graph has %d components of sizes %s: they share no reliable geometry "
+                       "and will map to separate models", len(sizes), sizes)
+    return PairResult(chosen, info, timings, why_empty="" if chosen else _why_empty(info))
+
+
+def _why_empty(info: dict[str, Any]) -> str:
+    rejected = ", ".join(f"{k} {v}" for k, v in sorted(info.get("rejected", {}).items())) or "none"
+    return (f"the sara pair source selected no pairs: {info.get('num_accepted', 0)} of {info['num_candidates']} "
+            f"candidate pairs accepted (rejected: {rejected}); the images may not overlap, or relax the score.* "
+            "thresholds")
+
+
+def _score(ctx: PairContext, candidates: list[Pair]) -> scoring.PairScores:
+    conf = ctx.conf
+    return scoring.score_pairs(candidates, ctx.features_path, ctx.db_path, conf.score, executor=ctx.executor,
+                               shard_size=conf.execute.shard_size, work_dir=ctx.out_dir / ".sara",
+                               progress=ctx.progress, seed=conf.seed)
+
+
+def _choose(num_images: int, edges: np.ndarray, scores: scoring.PairScores, conf: Any):
+    """Roles of the candidates (spanning tree, augmentation, low-parallax rescue)."""
+    max_pairs = PairBudget(num_images, conf.budget, conf.rounds).first_round()
+    chosen_graph = selection.select_pairs(num_images, edges, scores.weight, scores.parallax_deg, scores.accepted,
+                                          conf.graph, max_pairs=max_pairs,
+                                          tree_weight=scoring.tree_weights(scores, conf.score))
+    roles = list(chosen_graph.role)
+    rescued = rescue_low_parallax(num_images, edges, roles, scores)
+    return roles, chosen_graph, rescued
+
+
+def _widen_schedule(neighbors: int, num_images: int) -> list[int]:
+    """Neighbour counts of the widening rounds: `neighbors`, then four times as many (each at most
+    N - 1; none when 0)."""
+    if neighbors <= 0:
+        return []
+    out: list[int] = []
+    for k in (neighbors, 4 * neighbors):
+        k = min(k, num_images - 1)
+        if not out or k > out[-1]:
+            out.append(k)
+    return out
+
+
+def widen_candidates(desc: np.ndarray, edges: np.ndarray, labels: np.ndarray, neighbors: int) -> np.ndarray:
+    """New candidate pairs for the views outside the largest component of the selected graph.
+
+    Views whose candidates were all rejected (weak texture, hard illumination) or missed by the kNN
+    are cut off from the model. Their `neighbors` nearest global descriptors give more candidates,
+    views of the smallest components first, at most as many new pairs as there are candidates
+    already (each of the two rounds at most doubles the scoring). Returns (E', 2) int64 pairs i < j, none of
+    them in `edges`, in a deterministic order.
+    """
+    sizes = np.bincount(labels)
+    outside = np.flatnonzero(labels != 0)
+    if len(outside) == 0 or len(sizes) < 2:
+        return np.zeros((0, 2), dtype=np.int64)
+    outside = outside[np.argsort(sizes[labels[outside]], kind="stable")]  # smallest components first
+    known = {(int(a), int(b)) for a, b in edges}
+    budget = max(len(edges), neighbors)
+    new: list[tuple[int, int]] = []
+    for start in range(0, len(outside), 256):
+        rows = outside[start:start + 256]
+        nbrs = top_k_cosine(desc, neighbors, queries=rows)
+        for i, row in zip(rows, nbrs):
+            for j in row:
+                pair = (min(int(i), int(j)), max(int(i), int(j)))
+                if pair not in known:
+                    known.add(pair)
+                    new.append(pair)
+        if len(new) >= budget:
+            break
+    return np.array(new[:budget], dtype=np.int64).reshape(-1, 2)
+
+
+def _candidates(ctx: PairContext) -> tuple[list[str], np.ndarray, np.ndarray | None]:
+    """Image names, (E, 2) int64 candidate pairs and the global descriptors: the kNN of the global
+    descriptors, or every pair when k >= N - 1 (then kNN would return them all: the descriptors are
+    not computed, None)."""
+    conf = ctx.conf
+    if conf.retrieval.num_neighbors >= len(ctx.names) - 1:
+        names = list(ctx.names)
+        pairs = np.array(list(combinations(range(len(names)), 2)), dtype=np.int64).reshape(-1, 2)
+        return names, pairs, None
+    global_path = retrieval.run(conf.retrieval, ctx.features_path, ctx.names, ctx.out_dir,
+                                images_root=ctx.images_root, progress=ctx.progress, seed=conf.seed)
+    names, desc = retrieval.read_global(global_path)
+    return names, retrieval.knn_pairs(desc, conf.retrieval.num_neighbors).astype(np.int64), desc
+
+
+def rescue_low_parallax(num_images: int, edges: np.ndarray, roles: list[str], scores: scoring.PairScores) -> int:
+    """Join components of the selected graph with pairs rejected only for low parallax.
+
+    A maximum spanning forest over the components, weighted by overlap; sets their role to
+    "rescue" in place and returns how many were added.
+    """
+    selected = _selected_edges(edges, roles)
+    labels = selection.connected_components(num_images, selected)
+    pool = np.array([e for e, r in enumerate(scores.reason) if r == RESCUE_REASON and roles[e] == "rejected"
+                     and labels[edges[e, 0]] != labels[edges[e, 1]]], dtype=np.int64)
+    if len(pool) == 0:
+        return 0
+    pool = pool[np.argsort(-scores.overlap[pool], kind="stable")]
+    comp_edges = np.sort(np.stack([labels[edges[pool, 0]], labels[edges[pool, 1]]], axis=1), axis=1)
+    _, first = np.unique(comp_edges, axis=0, return_index=True)  # the best pair per two components
+    first = np.sort(first)
+    pool, comp_edges = pool[first], comp_edges[first]
+    chosen = selection.maximum_spanning_forest(int(labels.max()) + 1, comp_edges, scores.overlap[pool])
+    for e in pool[chosen]:
+        roles[e] = "rescue"
+    return len(chosen)
+
+
+def _selected_edges(edges: np.ndarray, roles: list[str]) -> np.ndarray:
+    mask = np.array([r in selection.SELECTED_ROLES or r == "rescue" for r in roles], dtype=bool)
+    return edges[mask] if len(edges) else edges.reshape(0, 2)
+
+
+def _component_sizes(labels: np.ndarray) -> list[int]:
+    return sorted(np.bincount(labels).tolist(), reverse=True) if len(labels) else []
+
+
+def _count(items) -> dict[str, int]:
+    out: dict[str, int] = {}
+    for item in items:
+        out[item] = out.get(item, 0) + 1
+    return out

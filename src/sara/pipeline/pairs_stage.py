@@ -1,0 +1,173 @@
+"""Stage `pairs`: the configured pair source (or a pairs file) -> `pairs.txt`.
+
+The source writes its own files (scores, global descriptors, caches) into `.sara/pairs.next/`;
+they and `pairs.txt` replace the previous ones only when it selected at least one pair (else
+NoResultError, and the previous pairs, matches and model stay). The stage is keyed by the
+features and by the configuration sections the source declares it depends on.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import shutil
+import time
+from pathlib import Path
+from typing import Any
+
+from .. import extract
+from ..config import PipelineConfig
+from ..execute import Executor
+from ..io import DamagedOutputError, NoResultError, file_digest, fingerprint, records
+from ..io.images import ImageSet
+from ..io.pairs import read_pairs, write_pairs
+from ..pairs import SOURCES, PairContext, PairSource, get_source
+from . import rounds
+
+logger = logging.getLogger(__name__)
+
+STAGE = "pairs"
+PAIRS_NAME = rounds.PAIRS_NAME
+STAGING = "pairs.next"
+#: outputs of the pairs stage whose digests the record keeps (caches check themselves)
+_TRACKED_PAIR_FILES = (PAIRS_NAME, "scores.csv")
+
+
+def pair_source_file(method: str) -> Path | None:
+    """None for a named pair source; the path for a pairs file (FileNotFoundError when neither)."""
+    if method in SOURCES:
+        return None
+    path = Path(method)
+    if path.is_dir():
+        raise IsADirectoryError(f"--pairs {method}: a folder, not a pairs file ('name0 name1' per line) "
+                                f"nor a pair source ({', '.join(SOURCES)})")
+    if not path.is_file():
+        raise FileNotFoundError(f"--pairs {method}: not a pair source ({', '.join(SOURCES)}) and no such pairs file")
+    return path
+
+
+def source_sections(conf: PipelineConfig) -> tuple[str, ...]:
+    """The configuration sections the configured pair source depends on (a pairs file: "pairs")."""
+    method = conf.pairs.method
+    return get_source(method).sections(conf) if method in SOURCES else ("pairs",)
+
+
+def pairs_key(conf: PipelineConfig, extract_key: str, source_file: Path | None) -> str:
+    data: dict[str, Any] = {"extract": extract_key, "seed": conf.seed}
+    data.update({section: getattr(conf, section).__dict__ for section in source_sections(conf)})
+    if source_file is not None:
+        data["file"] = source_file.read_text(encoding="utf-8", errors="replace")
+    return fingerprint(data)
+
+
+def current_key(conf: PipelineConfig, out_dir: Path) -> str:
+    """The key of the pairs stage for this configuration and the features in `out_dir`."""
+    extract_key = (records.read_record(out_dir, extract.STAGE) or {}).get("key", "")
+    return pairs_key(conf, extract_key, pair_source_file(conf.pairs.method))
+
+
+def pair_context(conf: PipelineConfig, images: ImageSet, features_path: Path, out_dir: Path, *,
+                 executor: Executor | None = None, progress: bool = True, work_dir: Path | None = None) -> PairContext:
+    return PairContext(names=images.names, images_root=images.root, features_path=features_path,
+                       db_path=out_dir / extract.DB_NAME, out_dir=work_dir or out_dir, conf=conf, progress=progress,
+                       executor=executor)
+
+
+def run(conf: PipelineConfig, images: ImageSet, features_path: Path, out_dir: Path, *,
+        executor: Executor | None = None, overwrite: bool = False, progress: bool = True) -> Path:
+    """Write `pairs.txt` from the configured source; returns its path."""
+    method = conf.pairs.method
+    source_file = pair_source_file(method)
+    key = current_key(conf, out_dir)
+    pairs_path = out_dir / PAIRS_NAME
+    if not overwrite and records.is_done(out_dir, STAGE, key) and pairs_intact(out_dir, key):
+        logger.info("pairs: %s up to date, skipping", pairs_path)
+        return pairs_path
+    tic = time.perf_counter()
+    staging = out_dir / ".sara" / STAGING
+    shutil.rmtree(staging, ignore_errors=True)
+    try:
+        if source_file is not None:
+            pairs = read_pairs(source_file, known_names=images.names)
+            info: dict[str, Any] = {"source": str(source_file)}
+            why_empty = ""
+        else:
+            source = get_source(method)
+            _seed_caches(source, out_dir, staging)
+            ctx = pair_context(conf, images, features_path, out_dir, executor=executor, progress=progress,
+                               work_dir=staging)
+            result = source(ctx)
+            pairs, info, why_empty = result.pairs, {**result.info, "timings_s": result.timings_s}, result.why_empty
+        if not pairs:
+            raise NoResultError(_no_pairs_reason(method, source_file, why_empty, len(images.names), out_dir))
+        produced = _swap_in_pair_files(staging, out_dir, key)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+    write_pairs(pairs_path, pairs)
+    n = len(images.names)
+    exhaustive = n * (n - 1) // 2
+    info.update(method=method, num_pairs=len(pairs), num_selected=len(pairs), time_s=time.perf_counter() - tic,
+                num_exhaustive_pairs=exhaustive, fraction_of_exhaustive=len(pairs) / max(1, exhaustive))
+    outputs = {name: file_digest(out_dir / name) for name in [PAIRS_NAME, *produced] if name in _TRACKED_PAIR_FILES}
+    records.mark_done(out_dir, STAGE, key, info, outputs=outputs)
+    return pairs_path
+
+
+def _seed_caches(source: PairSource, out_dir: Path, staging: Path) -> None:
+    """Copy the source's caches of earlier selections into the staging folder (it reuses them)."""
+    staging.mkdir(parents=True, exist_ok=True)
+    for pattern in source.caches:
+        for path in out_dir.glob(pattern):
+            if path.is_file():
+                shutil.copy2(path, staging / path.name)
+
+
+def _swap_in_pair_files(staging: Path, out_dir: Path, key: str) -> list[str]:
+    """Move what the source wrote into the output folder; returns the file names."""
+    records.mark_started(out_dir, STAGE, key)
+    rounds.clear(out_dir)
+    produced = []
+    if staging.is_dir():
+        for path in sorted(staging.iterdir()):
+            if path.is_file():
+                os.replace(path, out_dir / path.name)
+                produced.append(path.name)
+    return produced
+
+
+def _no_pairs_reason(method: str, source_file: Path | None, why_empty: str, num_images: int, out_dir: Path) -> str:
+    kept = " (the previous pairs, matches and model are kept)" if (out_dir / PAIRS_NAME).exists() else ""
+    if source_file is not None:
+        return f"{source_file} lists no pairs: nothing to match{kept}"
+    if num_images < 2:
+        return f"only {num_images} usable image: a reconstruction needs at least 2{kept}"
+    extracted = records.read_record(out_dir, extract.STAGE) or {}
+    featureless = (extracted.get("info") or {}).get("images_without_features") or []
+    if num_images - len(featureless) < 2:
+        return (f"{len(featureless)} of {num_images} images have no features (flat or featureless): a "
+                f"reconstruction needs at least 2 with features{kept}")
+    return f"{why_empty or f'the {method} pair source selected no pairs'}{kept}"
+
+
+def pairs_intact(out_dir: Path, key: str) -> bool:
+    """Whether the pairs stage's files still hold what it (or the rounds after it) wrote.
+
+    `pairs.txt` missing: select again (False). Changed (edited, emptied or cut short): never
+    overwritten, DamagedOutputError says what to do. `scores.csv` changed or damaged: made again
+    (False, with a warning).
+    """
+    pairs_path = out_dir / PAIRS_NAME
+    if not pairs_path.exists():
+        return False
+    recorded = records.recorded_outputs(out_dir, STAGE)
+    expected = rounds.pairs_digest(out_dir, key) or recorded.get(PAIRS_NAME)
+    if expected is not None and expected != file_digest(pairs_path):
+        raise DamagedOutputError(
+            f"{pairs_path} was changed after the pairs stage wrote it (edited, emptied or cut short); delete it to "
+            f"select the pairs again, or match your own pairs with `sara match {out_dir} --pairs FILE`")
+    for name in _TRACKED_PAIR_FILES[1:]:
+        if name in recorded and recorded[name] != file_digest(out_dir / name):
+            logger.warning("%s differs from what the pairs stage wrote (changed, damaged or missing): selecting "
+                           "the pairs again", out_dir / name)
+            return False
+    return True

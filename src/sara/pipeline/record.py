@@ -1,0 +1,115 @@
+"""What a run records for people: `run.json` (configuration, versions, each stage's counts and
+times) and `report.md`, a short summary; the HTML report (`sara.report`) reads `run.json`."""
+
+from __future__ import annotations
+
+import platform
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from .. import __version__, colmap, mapping, match
+from ..io import records, write_json_atomic
+from ..tables import markdown_table
+from . import rounds
+from .pairs_stage import STAGE as PAIRS_STAGE
+
+
+@dataclass
+class RunReport:
+    """Everything `run.json` records about a run."""
+
+    out_dir: Path
+    images_root: Path
+    config: dict[str, Any]
+    stages: dict[str, dict[str, Any]] = field(default_factory=dict)
+    skipped_images: dict[str, str] = field(default_factory=dict)
+    metrics: dict[str, Any] | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "sara_version": __version__,
+            "versions": versions(),
+            "images_root": str(self.images_root.resolve()),
+            "config": self.config,
+            "skipped_images": self.skipped_images,
+            "stages": self.stages,
+            "metrics": self.metrics,
+        }
+
+    def save(self) -> None:
+        write_json_atomic(self.out_dir / "run.json", self.to_dict())
+
+
+def versions() -> dict[str, str]:
+    import numpy
+
+    return {"python": platform.python_version(), "pycolmap": colmap.version(), "numpy": numpy.__version__}
+
+
+def collect_stages(report: RunReport, selection_key: str) -> None:
+    """The pairs, match and map stages as the whole run saw them, the rounds included: the pairs of
+    every round, and match and map times summed over them (each record keeps only its own)."""
+    out_dir = report.out_dir
+    pairs = dict(records.done_info(out_dir, PAIRS_STAGE))
+    matched = dict(records.done_info(out_dir, match.STAGE))
+    mapped = dict(records.done_info(out_dir, mapping.STAGE))
+    ledger = rounds.ledger(out_dir, selection_key)
+    before = ledger.get("before_mapping", {})
+    added_before = before.get("num_pairs", 0)
+    added_after = sum(len(p) for role, p in ledger.get("added", {}).items()) - added_before
+    if added_before or added_after:
+        pairs.update(num_added_before_mapping=added_before, num_added_after_mapping=added_after)
+        pairs["num_pairs"] = pairs.get("num_selected", pairs.get("num_pairs", 0)) + added_before + added_after
+        if pairs.get("num_exhaustive_pairs"):  # the pairs of all rounds, as the report counts them
+            pairs["fraction_of_exhaustive"] = pairs["num_pairs"] / pairs["num_exhaustive_pairs"]
+    if "first_match_time_s" in ledger:
+        matched["time_s"] = (ledger["first_match_time_s"] + before.get("match_time_s", 0.0)
+                             + ledger.get("match_time_s", 0.0))
+    if "first_map_time_s" in ledger:
+        mapped["time_s"] = ledger["first_map_time_s"] + ledger.get("map_time_s", 0.0)
+    report.stages.update(pairs=pairs, match=matched, map=mapped)
+    if ledger.get("rounds") or ledger.get("extension"):
+        report.stages["rounds"] = ledger
+
+
+def _tree_note(pairs_info: dict[str, Any]) -> str:
+    """How the SARA selection ranked its spanning tree, for the report ('' for other sources)."""
+    tree = pairs_info.get("tree_overlap")
+    if tree is None:
+        return ""
+    fov = pairs_info.get("field_of_view_deg")
+    view = f"{fov:.0f}-degree field of view" if fov is not None else "field of view unknown"
+    rank = "the inliers among all matches" if tree == "all" else "the paper's weight"
+    how = "" if pairs_info.get("tree_overlap_setting", "auto") == "auto" else ", as set by score.tree_overlap"
+    return f"; spanning tree by {rank} ({view}{how})"
+
+
+def render_report(report: RunReport) -> str:
+    """A short human-readable summary of a run (Markdown)."""
+    s = report.stages
+    ex, pr, ma, mp = s.get("extract", {}), s.get("pairs", {}), s.get("match", {}), s.get("map", {})
+    added, before = pr.get("num_added_after_mapping", 0), pr.get("num_added_before_mapping", 0)
+    rows = [
+        [f"extract ({ex.get('backend', 'sift')})", f"{ex.get('time_s', 0):.1f}",
+         f"{ex.get('keypoints_mean', 0):.0f} keypoints per image"],
+        [f"pairs ({pr.get('method')})", f"{pr.get('time_s', 0):.1f}",
+         f"{pr.get('num_pairs', 0)} pairs ({100 * pr.get('fraction_of_exhaustive', 0):.1f}% of exhaustive)"
+         + (f", {before} of them added before mapping for weakly matched views" if before else "")
+         + (f", {added} of them added after mapping" if added else "") + _tree_note(pr)],
+        [f"match ({ma.get('matcher', '')})", f"{ma.get('time_s', 0):.1f}",
+         f"{ma.get('num_verified_pairs', 0)} verified pairs, "
+         f"{ma.get('inlier_matches_per_pair_mean', 0):.0f} inlier matches per pair"],
+        ["map", f"{mp.get('time_s', 0):.1f}",
+         f"{mp.get('num_components', 0)} model(s): {mp.get('component_sizes', [])} images registered"],
+    ]
+    lines = [f"# sara run: {report.out_dir.name}", "",
+             f"Images: {s['images']['num_images']} used, {s['images']['num_skipped']} skipped "
+             f"(from `{report.images_root}`)", "", markdown_table(["stage", "time (s)", "result"], rows)]
+    if report.skipped_images:
+        lines += ["", "Skipped images:", ""] + [f"- `{n}`: {r}" for n, r in report.skipped_images.items()]
+    if report.metrics:
+        from ..evaluation import format_table
+
+        lines += ["", "## Accuracy against ground truth", "", "```", format_table(report.metrics), "```"]
+    return "\n".join(lines) + "\n"

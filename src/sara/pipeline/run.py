@@ -1,0 +1,213 @@
+"""`sara run`: images -> features -> pairs -> matches -> (rounds) -> sparse model -> evaluation.
+
+`run` checks every option and name before any work, then `_run_stages` runs the stages in order;
+each skips work already done, so a re-run resumes.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Any
+
+from .. import colmap, extract, mapping, match, weights
+from ..config import PipelineConfig
+from ..execute import Executor, make_executor
+from ..features import BACKENDS as FEATURE_BACKENDS
+from ..io import NoResultError, OutputLock, fingerprint, prepare_output_dir, records, write_text_atomic
+from ..io.images import ImageSet, scan_images, upright_copy
+from ..matchers import BACKENDS as MATCHER_BACKENDS
+from ..matchers import resolve_name
+from ..pairs import get_source
+from ..retrieval import DESCRIPTORS
+from . import pairs_stage, rounds
+from .record import RunReport, collect_stages, render_report
+
+logger = logging.getLogger(__name__)
+
+
+def run(conf: PipelineConfig, images_root: Path, out_dir: Path, *, gt_dir: Path | None = None,
+        overwrite: bool = False, progress: bool = True, verbose_colmap: bool = False,
+        stop_after: str | None = None) -> RunReport:
+    """The whole pipeline; every stage skips work already done, so a re-run resumes.
+
+    stop_after: "extract" or "pairs" to run only the stages up to that one.
+    """
+    if stop_after not in (None, "extract", "pairs"):
+        raise ValueError(f"stop_after must be extract or pairs, not {stop_after!r}")
+    out_dir, images_root = Path(out_dir), Path(images_root)
+    preflight(conf)  # a bad option or --pairs fails before any work
+    if gt_dir is not None:
+        _check_ground_truth(Path(gt_dir), images_root)
+    images = scan_images(images_root, recursive=conf.images.recursive, progress=progress)
+    if stop_after != "extract" and len(images.names) < 2:
+        raise ValueError(f"only one usable image in {images_root} ({images.names[0]}): a reconstruction needs "
+                         "at least 2")
+    if gt_dir is not None:
+        _check_ground_truth(Path(gt_dir), images_root, images.names)
+    prepare_output_dir(out_dir)
+    executor = make_executor(conf.execute.executor, conf.execute.workers, conf.execute.ray_address)
+    try:
+        with OutputLock(out_dir, clean=True):
+            recover(out_dir)
+            return _run_stages(conf, images, images_root, out_dir, executor, gt_dir=gt_dir, overwrite=overwrite,
+                               progress=progress, verbose_colmap=verbose_colmap, stop_after=stop_after)
+    finally:
+        executor.close()
+
+
+def _run_stages(conf: PipelineConfig, images: ImageSet, images_root: Path, out_dir: Path, executor: Executor, *,
+                gt_dir: Path | None, overwrite: bool, progress: bool, verbose_colmap: bool,
+                stop_after: str | None) -> RunReport:
+    images = _handle_orientation(conf.images.exif_orientation, images, out_dir, progress)
+    colmap.send_log_to(out_dir / "logs", verbose=verbose_colmap)
+    colmap.set_seed(conf.seed)
+    first_run = not (out_dir / "run.json").exists()
+    features = extract.run(conf.extract, images, out_dir, executor=executor, overwrite=overwrite, progress=progress)
+    images = extract.usable(images, out_dir)
+    report = RunReport(out_dir, images_root, conf.to_dict(), skipped_images=images.skipped)
+    report.stages["images"] = {"num_images": len(images.names), "num_skipped": len(images.skipped)}
+    report.stages["extract"] = records.done_info(out_dir, extract.STAGE)  # its time_s: when it really ran
+    if first_run or stop_after == "extract":
+        report.save()  # `sara map OUT` finds the images through run.json
+    if stop_after == "extract":
+        return report
+    pairs_path = pairs_stage.run(conf, images, features, out_dir, executor=executor, overwrite=overwrite,
+                                 progress=progress)
+    report.stages["pairs"] = records.done_info(out_dir, pairs_stage.STAGE)
+    if stop_after == "pairs":
+        report.save()
+        return report
+    source_rounds = _rounds_run(conf, images, features, out_dir, executor, progress)
+    work = match_pairs(conf, pairs_path, features, out_dir, executor=executor, progress=progress, beside=True,
+                       overwrite=overwrite)
+    staged = None
+    if source_rounds is not None:
+        work, staged = rounds.before_mapping(source_rounds, work)
+    map_model(conf, images.root, out_dir, db_path=work, progress=progress, overwrite=overwrite,
+              commit_round=(lambda: rounds.commit_staged(source_rounds, staged)) if staged else None)
+    if source_rounds is not None:
+        rounds.after_mapping(source_rounds)
+    collect_stages(report, pairs_stage.current_key(conf, out_dir))
+    if gt_dir is not None:
+        from ..evaluation import evaluate
+
+        report.metrics = evaluate(out_dir / "sparse", Path(gt_dir), out_dir / "metrics.json")
+    report.save()
+    write_text_atomic(out_dir / "report.md", render_report(report))
+    return report
+
+
+def _rounds_run(conf: PipelineConfig, images: ImageSet, features: Path, out_dir: Path, executor: Executor,
+                progress: bool) -> rounds.RoundsRun | None:
+    """The pair source's rounds around mapping, ready to run (None when it has none)."""
+    source = get_source(conf.pairs.method) if pairs_stage.pair_source_file(conf.pairs.method) is None else None
+    if source is None or source.rounds is None:
+        return None
+    ctx = pairs_stage.pair_context(conf, images, features, out_dir, executor=executor, progress=progress)
+    return rounds.RoundsRun(source.rounds, ctx, conf, out_dir, pairs_stage.current_key(conf, out_dir), progress)
+
+
+def match_pairs(conf: PipelineConfig, pairs_path: Path, features_path: Path, out_dir: Path, *,
+                executor: Executor | None = None, progress: bool = True, beside: bool = False,
+                overwrite: bool = False) -> Path:
+    """Stage `match` with this run's matcher; returns the database that holds the matches (with
+    `beside`, possibly a copy to `match.commit` once mapping succeeded)."""
+    return match.run(conf.match, pairs_path, out_dir / extract.DB_NAME, out_dir, features_path=features_path,
+                     features_backend=conf.extract.backend, executor=executor, progress=progress, beside=beside,
+                     overwrite=overwrite)
+
+
+def map_model(conf: PipelineConfig, images_root: Path, out_dir: Path, *, db_path: Path | None = None,
+              progress: bool = True, overwrite: bool = False, commit_round: Any = None) -> Path:
+    """Stage `map` on the matches of `db_path` (default the output's database; a copy made by the
+    match stage is moved into place just before the new model, with `commit_round`, the pairs a
+    round matched before mapping); returns `sparse/`. A failed mapping keeps the previous
+    matches and model."""
+    db = out_dir / extract.DB_NAME
+    work = Path(db_path or db)
+    upstream = fingerprint(match.matches_digest(work))
+
+    def commit() -> None:
+        match.commit(work, db, out_dir)
+        if commit_round is not None:
+            commit_round()
+
+    try:
+        return mapping.run(conf.map, work, images_root, out_dir, seed=conf.seed, upstream_key=upstream,
+                           progress=progress, min_num_inliers=conf.match.min_num_inliers, commit=commit,
+                           overwrite=overwrite)
+    except NoResultError:
+        if work != db:
+            colmap.remove_database(work)  # the previous matches stay with the previous model
+        (out_dir / ".sara" / rounds.STAGED_PAIRS).unlink(missing_ok=True)
+        raise
+
+
+def recover(out_dir: Path) -> None:
+    """Finish or undo what a run killed between two swaps left (call it holding the lock): the
+    previous `sparse/` when the new one never arrived; a round's `pairs.txt` whose ledger was
+    already written."""
+    mapping.recover(out_dir)
+    rounds.recover(out_dir)
+
+
+def preflight(conf: PipelineConfig) -> None:
+    """Check every name the run will look up (backends, descriptor, pair source), before any work.
+
+    Values in range are checked when the config is made; this checks the names that only the
+    registries know, and finds every weight file the run will load (file-system look-ups only):
+    a missing one fails in well under a second, not after the stages before it.
+    """
+    pairs_stage.pair_source_file(conf.pairs.method)
+    if conf.extract.backend not in FEATURE_BACKENDS:
+        raise ValueError(f"extract.backend must be one of {', '.join(FEATURE_BACKENDS)}, got {conf.extract.backend!r}")
+    matcher = resolve_name(conf.match, conf.extract.backend)
+    if matcher not in MATCHER_BACKENDS:
+        raise ValueError(f"match.backend must be auto or one of {', '.join(MATCHER_BACKENDS)}, got {matcher!r}")
+    uses_retrieval = "retrieval" in pairs_stage.source_sections(conf)
+    if uses_retrieval and conf.retrieval.descriptor not in DESCRIPTORS:
+        raise ValueError(f"retrieval.descriptor must be one of {', '.join(DESCRIPTORS)}, "
+                         f"got {conf.retrieval.descriptor!r}")
+    needed = list(_weights_needed(FEATURE_BACKENDS.get(conf.extract.backend), conf.extract))
+    needed += _weights_needed(MATCHER_BACKENDS.get(matcher), conf.match, conf.extract.backend)
+    if uses_retrieval:
+        needed += _weights_needed(DESCRIPTORS.get(conf.retrieval.descriptor), conf.retrieval)
+    for key, explicit in needed:
+        weights.find(key, explicit)
+
+
+def _weights_needed(backend: Any, *args: Any) -> list[tuple[str, str]]:
+    """The (weights key, explicit path) a backend declares through its `weights_needed`, if any."""
+    declare = getattr(backend, "weights_needed", None)
+    return list(declare(*args)) if declare is not None else []
+
+
+def _check_ground_truth(gt_dir: Path, images_root: Path, names: list[str] | None = None) -> None:
+    """A ground truth that does not exist, holds no model, or shares no image name with the images
+    fails before any work."""
+    if not gt_dir.exists():
+        raise FileNotFoundError(f"ground-truth folder not found: {gt_dir}")
+    if names is None:
+        return
+    from ..evaluation import gt_image_names
+
+    common = gt_image_names(gt_dir) & set(names)
+    if not common:
+        raise ValueError(f"the ground truth {gt_dir} shares no image name with {images_root}: is it the ground "
+                         "truth of another scene?")
+
+
+def _handle_orientation(mode: str, images: ImageSet, out_dir: Path, progress: bool) -> ImageSet:
+    if mode not in ("ignore", "apply"):
+        raise ValueError(f"images.exif_orientation must be ignore or apply, not {mode!r}")
+    if not images.orientation:
+        return images
+    if mode == "apply":
+        logger.warning("%d images carry an EXIF rotation: reconstructing from upright copies in %s",
+                       len(images.orientation), out_dir / "images_upright")
+        return upright_copy(images, out_dir / "images_upright", progress=progress)
+    logger.warning("%d images carry an EXIF rotation (e.g. %s); like COLMAP, sara uses the stored pixels. "
+                   "Use -s images.exif_orientation=apply for upright copies", len(images.orientation),
+                   next(iter(images.orientation)))
+    return images

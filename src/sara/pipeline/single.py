@@ -1,0 +1,125 @@
+"""Single stages on an existing output folder (`sara match OUT`, `sara map OUT`), and giving an
+output folder the features of another (bench methods and the demo share one extraction)."""
+
+from __future__ import annotations
+
+import dataclasses
+import shutil
+from pathlib import Path
+from typing import Any
+
+from .. import colmap, extract, mapping, match
+from ..config import PipelineConfig
+from ..features import features_file_name
+from ..io import DamagedOutputError, IncompleteStageError, OutputLock, link_or_copy, read_json, records
+from . import pairs_stage
+from .run import map_model, match_pairs, preflight, recover
+
+PAIRS_NAME = pairs_stage.PAIRS_NAME
+PAIRS_STAGE = pairs_stage.STAGE
+
+
+def load_run(out_dir: Path) -> dict[str, Any]:
+    path = Path(out_dir) / "run.json"
+    if not path.exists():
+        raise FileNotFoundError(f"{out_dir} holds no sara run (no run.json); run `sara run` or `sara extract` first")
+    return read_json(path)
+
+
+def _require_database(out_dir: Path, hint: str) -> Path:
+    db = Path(out_dir) / extract.DB_NAME
+    if not db.exists():
+        raise FileNotFoundError(f"{db} not found: {hint}")
+    return db
+
+
+def _require_finished(out_dir: Path, stage: str, command: str) -> dict[str, Any]:
+    record = records.read_record(out_dir, stage)
+    if record is None or record.get("done") is not True:
+        state = "never ran" if record is None else "did not finish (stopped or killed)"
+        raise IncompleteStageError(f"the {stage} stage in {out_dir} {state}: run `{command}` first")
+    return record
+
+
+def match_only(conf: PipelineConfig, out_dir: Path, pairs_path: Path | None = None, *, progress: bool = True,
+               verbose_colmap: bool = False) -> dict[str, Any]:
+    """`sara match OUT`: match a pairs file (default OUT/pairs.txt) into OUT's database."""
+    out_dir = Path(out_dir)
+    db = _require_database(out_dir, f"run `sara extract IMAGES {out_dir}` first")
+    pairs_path = Path(pairs_path or out_dir / PAIRS_NAME)
+    if pairs_path.is_dir():
+        raise IsADirectoryError(f"--pairs {pairs_path}: a folder, not a pairs file ('name0 name1' per line)")
+    preflight(dataclasses.replace(conf, pairs=dataclasses.replace(conf.pairs, method="exhaustive")))
+    with OutputLock(out_dir, clean=True):
+        recover(out_dir)
+        record = _require_finished(out_dir, extract.STAGE, f"sara extract IMAGES {out_dir}")
+        backend = record.get("info", {}).get("backend", conf.extract.backend)
+        if backend != conf.extract.backend:
+            raise ValueError(f"{out_dir} holds {backend} features, not {conf.extract.backend}: give the options of "
+                             "the extraction (--preset, -s extract.backend=...)")
+        selected = records.read_record(out_dir, PAIRS_STAGE)
+        if pairs_path == out_dir / PAIRS_NAME and selected is not None:
+            # a changed pairs.txt of the pairs stage is not matched silently
+            pairs_stage.pairs_intact(out_dir, selected.get("key", ""))
+        colmap.send_log_to(out_dir / "logs", verbose=verbose_colmap)
+        features = out_dir / features_file_name(conf.extract)
+        work = match_pairs(conf, pairs_path, features, out_dir, progress=progress, beside=True)
+        match.commit(work, db, out_dir)
+    return records.done_info(out_dir, match.STAGE)
+
+
+def map_only(conf: PipelineConfig, out_dir: Path, images_root: Path | None = None, *, progress: bool = True,
+             verbose_colmap: bool = False) -> dict[str, Any]:
+    """`sara map OUT`: map OUT's database into OUT/sparse (images: the folder recorded in run.json).
+
+    Refuses when the match stage did not finish, or when the database no longer holds the matches
+    it recorded: an unfinished match is never mapped as if it were complete.
+    """
+    out_dir = Path(out_dir)
+    db = _require_database(out_dir, "run `sara extract` and `sara match` first")
+    images_root = Path(images_root or load_run(out_dir)["images_root"])
+    if not images_root.is_dir():
+        raise FileNotFoundError(f"image folder {images_root} not found: give it with --images")
+    preflight(dataclasses.replace(conf, pairs=dataclasses.replace(conf.pairs, method="exhaustive")))
+    with OutputLock(out_dir, clean=True):
+        recover(out_dir)
+        record = _require_finished(out_dir, match.STAGE, f"sara match {out_dir}")
+        try:
+            now = match.matches_digest(db)
+        except DamagedOutputError as exc:
+            raise DamagedOutputError(f"{exc}; run `sara run` again with --overwrite to redo it") from None
+        recorded = record.get("outputs", {}).get(match.DB_NAME)
+        if recorded is not None and recorded != now:
+            raise IncompleteStageError(f"{db} no longer holds the matches of the last match stage (changed, or a "
+                                       f"run stopped before it finished): run `sara match {out_dir}` first")
+        colmap.send_log_to(out_dir / "logs", verbose=verbose_colmap)
+        map_model(conf, images_root, out_dir, progress=progress)
+    return records.done_info(out_dir, mapping.STAGE)
+
+
+def share_features(features_dir: Path, out_dir: Path) -> bool:
+    """Give `out_dir` the features of another output folder: the database (features only), the
+    features file (hard-linked) and the extract record, so that several runs (bench methods, the
+    demo) share one extraction.
+
+    Kept as it is when it already holds these very features (a re-run resumes); otherwise its stage
+    records are cleared so that no stage is skipped on matches of other features. Returns True when
+    the features were (re)copied.
+    """
+    features_dir, out_dir = Path(features_dir), Path(out_dir)
+    source = records.read_record(features_dir, extract.STAGE)
+    if source is None or source.get("done") is not True:
+        raise FileNotFoundError(f"no finished feature extraction in {features_dir}")
+    features_name = source.get("info", {}).get("features", "features-sift.h5")
+    current = records.read_record(out_dir, extract.STAGE)
+    if (current is not None and current.get("key") == source["key"] and current.get("done") is True
+            and (out_dir / extract.DB_NAME).exists() and (out_dir / features_name).exists()):
+        return False
+    shutil.rmtree(out_dir / ".sara", ignore_errors=True)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    colmap.remove_database(out_dir / extract.DB_NAME)
+    colmap.copy_database(features_dir / extract.DB_NAME, out_dir / extract.DB_NAME)
+    link_or_copy(features_dir / features_name, out_dir / features_name)
+    records.mark_done(out_dir, extract.STAGE, source["key"], source.get("info", {}), outputs=source.get("outputs"))
+    return True
+

@@ -1,0 +1,160 @@
+"""Class 7 of the fault suite: options and commands. An out-of-range option fails when parsed,
+naming the option and its valid range (exit 2, nothing read or written); usage errors, `sara
+evaluate` on what it cannot score, and too few images each give one line."""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import shutil
+from pathlib import Path
+
+import pytest
+
+from harness import assert_error, assert_kept, assert_ok, snapshot, truncate
+
+BAD_VALUES = {
+    "--seed -1": (["--seed", "-1"], "--seed", "from 0 to 2147483647"),
+    "--seed 2**31": (["--seed", str(2**31)], "seed must be"),
+    "--workers -1": (["--workers", "-1"], "--workers", "execute.workers must be an integer >= 0"),
+    "zero features": (["-s", "extract.max_num_features=0"], "extract.max_num_features", ">= 1"),
+    "negative image size": (["-s", "extract.max_image_size=-5"], "extract.max_image_size", ">= 32"),
+    "NaN weight exponent": (["-s", "score.alpha=nan"], "score.alpha", "finite"),
+    "infinite weight exponent": (["-s", "score.beta=inf"], "score.beta", "finite"),
+    "zero chunk size": (["-s", "match.chunk_size=0"], "match.chunk_size", ">= 1"),
+    "zero shard size": (["-s", "execute.shard_size=0"], "execute.shard_size", ">= 1"),
+    "zero neighbours": (["-s", "retrieval.num_neighbors=0"], "retrieval.num_neighbors", ">= 1"),
+    "ratio above 1": (["-s", "match.max_ratio=1.5"], "match.max_ratio", "(0, 1]"),
+    "model of one image": (["-s", "map.min_model_size=1"], "map.min_model_size", ">= 2"),
+    "inliers above matches": (["-s", "score.min_inliers=100"], "score.min_inliers", "score.num_matches"),
+    "unknown camera model": (["-s", "extract.camera_model=FOO"], "extract.camera_model", "PINHOLE"),
+    "camera params not numbers": (["-s", "extract.camera_params=a,b"], "extract.camera_params", "comma-separated"),
+    "unknown orientation mode": (["-s", "images.exif_orientation=rotate"], "images.exif_orientation", "ignore, apply"),
+    "NaN budget": (["-s", "graph.loop_budget_ratio=nan"], "graph.loop_budget_ratio", "finite"),
+    "negative rounds": (["-s", "rounds.repair_rounds=-1"], "rounds.repair_rounds", ">= 0"),
+    "unknown device": (["-s", "extract.device=gpu"], "extract.device", "cuda"),
+    "zero focal factor": (["-s", "extract.default_focal_length_factor=0"], "default_focal_length_factor", "(0, 100]"),
+    "zero inlier ratio": (["-s", "map.abs_pose_min_inlier_ratio=0"], "map.abs_pose_min_inlier_ratio", "(0, 1]"),
+    "not a number": (["-s", "score.alpha=abc"], "score.alpha", "not a float"),
+    "unknown mapper flag": (["--mapper", "foo"], "--mapper", "invalid choice"),
+    "unknown camera mode flag": (["--camera-mode", "x"], "--camera-mode", "invalid choice"),
+}
+
+
+@pytest.mark.parametrize("case", list(BAD_VALUES))
+def test_out_of_range_option_fails_at_parse_time(case, finished_run_template, images, run_cli):
+    """The message names the option and its valid range; nothing is read or written."""
+    args, *fragments = BAD_VALUES[case]
+    before = snapshot(finished_run_template)
+    result = run_cli("run", images, finished_run_template, "-q", *args)
+    assert_error(result, 2, *fragments)
+    assert_kept(before, finished_run_template)
+
+
+def test_every_option_has_a_valid_range():
+    from sara.config import RULES, PipelineConfig
+
+    def options(conf, prefix=""):
+        for f in dataclasses.fields(conf):
+            value = getattr(conf, f.name)
+            if dataclasses.is_dataclass(value):
+                yield from options(value, f"{prefix}{f.name}.")
+            else:
+                yield prefix + f.name
+
+    missing = [o for o in options(PipelineConfig()) if o not in RULES and o != "graph.loop_scale_fractions"]
+    assert missing == [], f"options without a valid range in sara.config.RULES: {missing}"
+    assert RULES
+
+
+@pytest.mark.parametrize("argv,fragment", [
+    (["demo", "--num-images", "1"], "--num-images"),
+    (["nope"], "invalid choice"),
+    (["run"], "required"),
+], ids=["demo of one image", "unknown command", "missing arguments"])
+def test_usage_errors_are_one_line(argv, fragment, run_cli):
+    result = run_cli(*argv)
+    assert_error(result, 2, fragment)
+
+
+@pytest.fixture
+def other_scene_gt(synthetic_scene, tmp_path) -> Path:
+    """The ground truth with every image renamed: the truth of another scene."""
+    gt = Path(shutil.copytree(synthetic_scene[1], tmp_path / "other_gt"))
+    text = (gt / "images.txt").read_text()
+    for name in sorted(os.listdir(synthetic_scene[0])):
+        text = text.replace(name, "other_" + name)
+    (gt / "images.txt").write_text(text)
+    return gt
+
+
+EVALUATE = {
+    "folder without a model": (lambda t, o, g: (t, g), 2, "holds no COLMAP model"),
+    "missing model folder": (lambda t, o, g: (t / "nope", g), 2, "does not exist"),
+    "ground truth of another scene": (lambda t, o, g: (o, "OTHER"), 2, "share no image name", "another scene"),
+    "missing ground truth": (lambda t, o, g: (o, t / "nope"), 2, "ground-truth model folder not found"),
+    "damaged model": (lambda t, o, g: (_damaged_model(o), g), 2, "no readable COLMAP model"),
+}
+
+
+def _damaged_model(out: Path) -> Path:
+    truncate(out / "sparse" / "0" / "images.bin", 0.5)
+    return out
+
+
+@pytest.mark.parametrize("case", list(EVALUATE))
+def test_evaluate_refuses_what_it_cannot_score(case, finished_run, synthetic_scene, other_scene_gt, tmp_path,
+                                               run_cli):
+    make, code, *fragments = EVALUATE[case]
+    model, gt = make(tmp_path / "empty", finished_run, synthetic_scene[1])
+    (tmp_path / "empty").mkdir()
+    gt = other_scene_gt if gt == "OTHER" else gt
+    result = run_cli("evaluate", model, gt)
+    assert_error(result, code, *fragments)
+
+
+def test_evaluate_scores_a_model(finished_run, synthetic_scene, run_cli):
+    result = run_cli("evaluate", finished_run, synthetic_scene[1])
+    assert_ok(result)
+    assert "num_registered" in result.out
+
+
+def test_run_against_another_scenes_truth_fails_before_any_work(finished_run, images, other_scene_gt, run_cli):
+    before = snapshot(finished_run)
+    result = run_cli("run", images, finished_run, "-q", "--gt", other_scene_gt)
+    assert_error(result, 2, "shares no image name", "another scene")
+    assert_kept(before, finished_run)
+
+
+def test_one_image_is_refused(images, tmp_path, run_cli):
+    folder = tmp_path / "one"
+    folder.mkdir()
+    shutil.copyfile(sorted(images.iterdir())[0], folder / "only.png")
+    result = run_cli("run", folder, tmp_path / "out", "-q")
+    assert_error(result, 2, "only one usable image", "at least 2")
+    assert not (tmp_path / "out").exists()
+
+
+def test_two_close_views_say_why_no_model(images, tmp_path, run_cli):
+    """Two views with well over 100 inlier matches: the message says what COLMAP's mapper lacks
+    (triangulation angle), not "too few verified matches"."""
+    folder = tmp_path / "two"
+    folder.mkdir()
+    for path in sorted(images.iterdir())[:2]:
+        shutil.copyfile(path, folder / path.name)
+    result = run_cli("run", folder, tmp_path / "out", "-q")
+    line = assert_error(result, 5, "no model could be built", "inlier matches", "16 degrees")
+    assert "too few verified matches" not in line
+    assert not (tmp_path / "out" / "sparse").exists() and not (tmp_path / "out" / "report.md").exists()
+
+
+def test_map_with_a_missing_image_folder(finished_run, tmp_path, run_cli):
+    before = snapshot(finished_run)
+    result = run_cli("map", finished_run, "--images", tmp_path / "gone", "-q")
+    assert_error(result, 2, "not found", "--images")
+    assert_kept(before, finished_run)
+
+
+def test_match_on_a_folder_that_is_not_a_run(tmp_path, run_cli):
+    result = run_cli("match", tmp_path, "-q")
+    assert_error(result, 2, "run `sara extract")

@@ -1,0 +1,127 @@
+"""Class 1 of the fault suite: resume trusts state it should not. A damaged, changed or unfinished
+output is refused with one line (exit 3) and nothing written, or made again the same when sara
+itself derived it (features file, scores, model)."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import sqlite3
+from pathlib import Path
+
+import pytest
+
+from harness import assert_error, assert_kept, assert_ok, registered, snapshot, truncate
+
+
+def write_record(out: Path, stage: str, **changes) -> None:
+    """Change fields of a stage's record, as a run killed in that stage leaves it."""
+    path = Path(out) / ".sara" / f"{stage}.json"
+    record = json.loads(path.read_text())
+    record.update(changes)
+    path.write_text(json.dumps(record))
+
+
+def _drop_one_geometry(out: Path) -> None:
+    con = sqlite3.connect(out / "database.db")
+    con.execute("DELETE FROM two_view_geometries WHERE pair_id = (SELECT MIN(pair_id) FROM two_view_geometries)")
+    con.commit()
+    con.close()
+
+
+DAMAGE = {
+    "killed match, then map": (lambda o: write_record(o, "match", done=False), ["map"], 3, "match stage",
+                               "did not finish"),
+    "match never ran, then map": (lambda o: (o / ".sara" / "match.json").unlink(), ["map"], 3, "never ran"),
+    "matches changed, then map": (_drop_one_geometry, ["map"], 3, "no longer holds the matches", "sara match"),
+    "pairs.txt shortened": (lambda o: truncate(o / "pairs.txt", 0.5), ["run"], 3, "pairs.txt was changed", "delete it"),
+    "pairs.txt emptied": (lambda o: (o / "pairs.txt").write_text(""), ["run"], 3, "pairs.txt was changed"),
+    "pairs.txt line added": (lambda o: (o / "pairs.txt").open("a").write("x.png y.png\n"), ["run"], 3, "was changed"),
+    "pairs.txt edited, then match": (lambda o: truncate(o / "pairs.txt", 0.3), ["match"], 3, "pairs.txt was changed"),
+    "database truncated": (lambda o: truncate(o / "database.db", 0.4), ["run"], 3, "database.db is damaged",
+                           "--overwrite"),
+    "database emptied": (lambda o: (o / "database.db").write_bytes(b""), ["run"], 3, "database.db is damaged"),
+    "database overwritten": (lambda o: (o / "database.db").write_bytes(b"not a database" * 100), ["run"], 3,
+                             "database.db is damaged"),
+    "database truncated, then map": (lambda o: truncate(o / "database.db", 0.6), ["map"], 3, "is damaged"),
+    "database truncated, then match": (lambda o: truncate(o / "database.db", 0.6), ["match"], 3, "is damaged"),
+    "model file truncated": (lambda o: truncate(o / "sparse" / "0" / "images.bin", 0.5), ["run"], 3,
+                             "sparse was changed", "move it away"),
+    "model file deleted": (lambda o: (o / "sparse" / "0" / "points3D.bin").unlink(), ["run"], 3, "sparse was changed"),
+    "killed extraction, then match": (lambda o: write_record(o, "extract", done=False), ["match"], 3,
+                                      "extract stage", "did not finish"),
+}
+
+
+@pytest.mark.parametrize("case", list(DAMAGE))
+def test_damaged_state_is_refused(case, finished_run, images, run_cli):
+    """A record is never taken as proof: damaged or unfinished state stops with one line (exit 3)
+    and nothing is written."""
+    damage, command, code, *fragments = DAMAGE[case]
+    damage(finished_run)
+    before = snapshot(finished_run)
+    args = {"run": ["run", images, finished_run], "map": ["map", finished_run],
+            "match": ["match", finished_run]}[command[0]]
+    result = run_cli(*args, "-q")
+    assert_error(result, code, *fragments)
+    assert_kept(before, finished_run)
+
+
+def test_other_extraction_settings_refused(finished_run, images, run_cli):
+    before = snapshot(finished_run)
+    result = run_cli("run", images, finished_run, "-q", "-s", "extract.max_num_features=1000")
+    assert_error(result, 3, "other images or other extraction settings", "--overwrite")
+    assert_kept(before, finished_run)
+
+
+def test_other_image_folder_refused(finished_run, images, tmp_path, run_cli):
+    other = tmp_path / "more_images"
+    shutil.copytree(images, other)
+    shutil.copyfile(other / sorted(os.listdir(other))[0], other / "extra.png")
+    before = snapshot(finished_run)
+    result = run_cli("run", other, finished_run, "-q")
+    assert_error(result, 3, "other images")
+    assert_kept(before, finished_run)
+
+
+@pytest.mark.parametrize("damage", ["truncated", "overwritten"])
+def test_damaged_features_are_made_again(damage, finished_run, images, finished_run_template, run_cli):
+    """The features file is derived from the database: a damaged one is written again, the same."""
+    from sara.io.h5 import features_digest
+
+    h5 = finished_run / "features-sift.h5"
+    if damage == "truncated":
+        truncate(h5, 0.3)
+    else:
+        h5.write_bytes(b"\0" * 4096)
+    before = snapshot(finished_run)
+    result = run_cli("run", images, finished_run, "-q")
+    assert_ok(result)
+    assert "extracting the features again" in result.err
+    assert features_digest(h5) == features_digest(finished_run_template / "features-sift.h5")
+    assert_kept(before, finished_run, ("pairs.txt", "scores.csv", "sparse"))
+
+
+def test_damaged_scores_are_made_again(finished_run, images, finished_run_template, run_cli):
+    truncate(finished_run / "scores.csv", 0.5)
+    result = run_cli("run", images, finished_run, "-q")
+    assert_ok(result)
+    assert "scores.csv differs from what the pairs stage wrote" in result.err
+    assert (finished_run / "scores.csv").read_bytes() == (finished_run_template / "scores.csv").read_bytes()
+    assert registered(finished_run) == registered(finished_run_template)
+
+
+@pytest.mark.parametrize("loss", ["sparse deleted", "map record cut short"])
+def test_lost_model_is_mapped_again(loss, finished_run, images, finished_run_template, run_cli):
+    if loss == "sparse deleted":
+        shutil.rmtree(finished_run / "sparse")
+    else:
+        truncate(finished_run / ".sara" / "map.json", 0.5)
+    before = snapshot(finished_run)
+    result = run_cli("run", images, finished_run, "-q")
+    assert_ok(result)
+    assert registered(finished_run) == registered(finished_run_template)
+    assert_kept(before, finished_run, ("pairs.txt", "scores.csv", "features-sift.h5"))
+
+
