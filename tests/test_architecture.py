@@ -124,3 +124,70 @@ def test_importing_the_cli_loads_no_heavy_package() -> None:
             "print(sorted(m for m in ('torch', 'kornia', 'ray', 'matplotlib') if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "[]"
+
+
+#: floors inside a package: a module imports its siblings on lower floors only
+SUB_FLOORS = {
+    "pipeline": {"rounds": 0, "pairs_stage": 1, "record": 2, "run": 3, "single": 4, "__init__": 5},
+    # the pair sources stand side by side: none imports another, all import the package's protocols
+    "pairs": {"__init__": 0, "exhaustive": 1, "sequential": 1, "vocabtree": 1, "retrieval_only": 1, "sara": 1},
+}
+MAX_MODULE_LINES = 450
+MAX_FUNCTION_LINES = 80  # the aim is about 60: a function read at once
+
+
+def _sibling_imports(path: Path) -> list[tuple[str, int]]:
+    """(sibling module, line) that a module of a package imports with `from .x` or `from . import x`."""
+    out = []
+    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+        if isinstance(node, ast.ImportFrom) and node.level == (2 if path.parent.name == "sara" and
+                                                                path.parent.parent.name == "pairs" else 1):
+            names = [node.module.split(".")[0]] if node.module else [alias.name for alias in node.names]
+            out += [(name, node.lineno) for name in names]
+    return out
+
+
+def test_modules_inside_a_package_keep_their_floors() -> None:
+    wrong = []
+    for package, floors in SUB_FLOORS.items():
+        for path in sorted((SRC / package).rglob("*.py")):
+            rel = path.relative_to(SRC / package).parts
+            module = rel[0].removesuffix(".py")
+            assert module in floors, f"{package}/{rel[0]} has no floor in SUB_FLOORS"
+            if len(rel) > 1 and rel[0] == "sara":  # inside pairs/sara: its imports of pairs' own modules
+                imports = [(name, line) for name, line in _sibling_imports(path) if name in floors]
+            elif len(rel) > 1:
+                continue
+            else:
+                imports = [(name, line) for name, line in _sibling_imports(path) if name in floors]
+            for name, line in imports:
+                if name != module and floors[name] >= floors[module]:
+                    wrong.append(f"{package}/{'/'.join(rel)}:{line} imports {name}")
+    assert not wrong, "\n".join(wrong)
+
+
+def test_the_pipeline_knows_no_pair_source_by_name() -> None:
+    """SARA's logic lives in sara.pairs.sara; the pipeline drives any source through its protocols,
+    and no other room imports SARA's package (the registry names it in a string)."""
+    named = [f"{path.relative_to(SRC)}:{node.lineno} {node.value!r}" for path in sorted((SRC / "pipeline").rglob("*.py"))
+             for node in ast.walk(ast.parse(path.read_text(encoding="utf-8")))
+             if isinstance(node, ast.Constant) and node.value in ("sara", "repair", "vocab_tree.bin", "global-*.h5")]
+    assert not named, f"the pipeline names a pair source or its files: {named}"
+    importers = [f"{path.relative_to(SRC)}:{node.lineno}" for path in _files() if "pairs/sara" not in path.as_posix()
+                 for node in ast.walk(ast.parse(path.read_text(encoding="utf-8")))
+                 if isinstance(node, ast.ImportFrom) and "pairs.sara" in f"{'.' * node.level}{node.module or ''}"]
+    assert not importers, f"modules outside sara.pairs.sara import it: {importers}"
+
+
+def test_no_module_or_function_too_long_to_read() -> None:
+    long_modules = [f"{p.relative_to(SRC)} ({n})" for p in _files()
+                    if (n := len(p.read_text(encoding="utf-8").splitlines())) > MAX_MODULE_LINES]
+    assert not long_modules, f"modules over {MAX_MODULE_LINES} lines: {long_modules}"
+    long_functions = []
+    for path in _files():
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                length = node.end_lineno - node.lineno + 1
+                if length > MAX_FUNCTION_LINES:
+                    long_functions.append(f"{path.relative_to(SRC)}:{node.lineno} {node.name} ({length})")
+    assert not long_functions, f"functions over {MAX_FUNCTION_LINES} lines: {long_functions}"

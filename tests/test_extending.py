@@ -9,6 +9,7 @@ from pathlib import Path
 from sara.cli import main
 from sara.io import read_json, records
 from sara.io.pairs import read_pairs
+from sara.mapping import model_digest
 from sara.pairs import SOURCES, NoRounds, PairContext, PairResult, PairSource, Round
 
 
@@ -44,8 +45,10 @@ def test_a_toy_pair_source_with_rounds_runs_end_to_end(synthetic_scene, tmp_path
     # the pairs record is the selection's own: the rounds never rewrote it
     assert records.done_info(out, "pairs")["num_pairs"] == len(names) - 1
     # a second run resumes: nothing is selected, matched or mapped again
+    model = model_digest(out / "sparse")
     assert main(["run", str(images), str(out), "--pairs", "next", "--quiet", "-s", "rounds.extend_tracks=false"]) == 0
     assert read_pairs(out / "pairs.txt") == pairs
+    assert model_digest(out / "sparse") == model and records.done_info(out, "rounds") == ledger
 
 
 def test_a_source_without_rounds_is_a_plain_function(synthetic_scene, tmp_path: Path, monkeypatch) -> None:

@@ -44,21 +44,20 @@ from .database_queries import (
 )
 from .geometry import colmap_to_hloc_keypoints, hloc_to_colmap_keypoints, image_to_normalized, mean_focal_px
 from .matching import VERIFICATION_SEED, estimate_fundamental, match_pairs, verify_pairs
-from .native import ColmapError, native_errors, quiet_signals_in_worker, send_log_to, set_seed, version
+from .native import ColmapError, quiet_signals_in_worker, send_log_to, set_seed, version
 from .reconstruction import (
     cameras_and_poses,
     has_model,
     load_poses,
     model_structure,
     num_registered,
-    pose_of_image,
     poses_of,
     read_model,
     read_reconstruction,
     registered_images,
     reprojection_errors_px,
 )
-from .sfm import bundle_adjust, global_mapping, incremental_mapping, mapper_init_requirements, write_models_by_size
+from .sfm import global_mapping, incremental_mapping, mapper_init_requirements, write_models_by_size
 from .sift import FeatureReader, extract_sift, image_read_problem, sift_of_image
 from .synthetic import synthesize_scene
 from .vocabtree import build_visual_index, vocab_tree_retrieval
@@ -68,7 +67,6 @@ __all__ = [
     "ColmapError",
     "FeatureReader",
     "build_visual_index",
-    "bundle_adjust",
     "cameras_and_poses",
     "cameras_by_image",
     "clear_matches",
@@ -96,9 +94,7 @@ __all__ = [
     "match_pairs",
     "mean_focal_px",
     "model_structure",
-    "native_errors",
     "num_registered",
-    "pose_of_image",
     "poses_of",
     "quiet_signals_in_worker",
     "read_model",
