@@ -134,13 +134,21 @@ def _extract_focal(images: Path, out: Path, **settings) -> dict | None:
     return records.done_info(out, extract.STAGE).get("focal")
 
 
+def _estimate(out: Path) -> dict | None:
+    """The extract stage's focal estimate, as the pipeline hands it to the pair source."""
+    from sara import extract
+    from sara.io import records
+
+    return records.done_info(out, extract.STAGE).get("focal")
+
+
 def _pair_context(out: Path, names: list[str], tree_overlap: str = "auto"):
     from sara.config import PipelineConfig, ScoreConfig
     from sara.pairs import PairContext
 
     conf = PipelineConfig(score=ScoreConfig(tree_overlap=tree_overlap))
     return PairContext(names=names, images_root=out, features_path=out / "features.h5", db_path=out / "database.db",
-                       out_dir=out, conf=conf)
+                       out_dir=out, conf=conf, focal_estimate=_estimate(out))
 
 
 def test_quarter_size_frames_of_a_wide_lens_give_a_sound_estimate(tmp_path: Path):
@@ -158,7 +166,7 @@ def test_quarter_size_frames_of_a_wide_lens_give_a_sound_estimate(tmp_path: Path
     assert not found["applied"]
     # the selection knows the field of view, so its spanning tree ranks by the inliers of all matches
     names = sorted(p.name for p in images.iterdir())
-    fov = known_field_of_view(tmp_path / "out" / "database.db", names)
+    fov = known_field_of_view(tmp_path / "out" / "database.db", names, _estimate(tmp_path / "out"))
     assert 55 < fov < 70
     assert resolve_tree_overlap(_pair_context(tmp_path / "out", names)) == ("all", fov)
     assert resolve_tree_overlap(_pair_context(tmp_path / "out", names, "best")) == ("best", fov)
@@ -170,12 +178,12 @@ def test_quarter_size_frames_of_a_wide_lens_give_a_sound_estimate(tmp_path: Path
         del record["info"]["focal"][key]
     record_path.write_text(json.dumps(record))
     features = next((tmp_path / "out").glob("features-*.h5"))
-    assert known_field_of_view(tmp_path / "out" / "database.db", names) is None
-    assert known_field_of_view(tmp_path / "out" / "database.db", names, features) == pytest.approx(fov)
+    assert known_field_of_view(tmp_path / "out" / "database.db", names, _estimate(tmp_path / "out")) is None
+    assert known_field_of_view(tmp_path / "out" / "database.db", names, _estimate(tmp_path / "out"), features) == pytest.approx(fov)
     # known focal lengths (camera_params: COLMAP's prior focal length) count as well: a long lens
     out = tmp_path / "known"
     _extract_focal(images, out, camera_params="1380,192,128,0")
-    assert known_field_of_view(out / "database.db", names) == pytest.approx(np.degrees(2 * np.arctan(192 / 1380)))
+    assert known_field_of_view(out / "database.db", names, _estimate(out)) == pytest.approx(np.degrees(2 * np.arctan(192 / 1380)))
     assert resolve_tree_overlap(_pair_context(out, names))[0] == "best"
 
 
@@ -187,7 +195,7 @@ def test_a_turntable_gives_no_sound_estimate(tmp_path: Path):
     assert found["estimated_px"] < 0.5 * found["prior_px"]  # what the degenerate curve gives
     assert not found["sound"] and not found["applied"] and found["sharpness"] < focal.MIN_SHARPNESS
     names = sorted(p.name for p in images.iterdir())
-    assert known_field_of_view(tmp_path / "out" / "database.db", names) is None
+    assert known_field_of_view(tmp_path / "out" / "database.db", names, _estimate(tmp_path / "out")) is None
     assert resolve_tree_overlap(_pair_context(tmp_path / "out", names)) == ("best", None)
     assert resolve_tree_overlap(_pair_context(tmp_path / "out", names, "all")) == ("all", None)
 
@@ -206,6 +214,6 @@ def test_an_exif_focal_length_tells_the_field_of_view(tmp_path: Path):
             im.resize((im.width // 4, im.height // 4), Image.LANCZOS).save(images / path.name, exif=exif)
     assert _extract_focal(images, tmp_path / "out") is None  # no estimate: EXIF gave the focal length
     names = sorted(p.name for p in images.iterdir())
-    fov = known_field_of_view(tmp_path / "out" / "database.db", names)
+    fov = known_field_of_view(tmp_path / "out" / "database.db", names, _estimate(tmp_path / "out"))
     assert fov == pytest.approx(np.degrees(2 * np.arctan(18 / 32)), abs=0.5)
     assert resolve_tree_overlap(_pair_context(tmp_path / "out", names)) == ("all", fov)

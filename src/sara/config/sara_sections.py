@@ -196,7 +196,7 @@ class RoundsConfig:
         final model), add to its tracks the keypoints that observe its 3D points without a match saying so,
         then bundle-adjust once more: each view against the points it should see, a keypoint within
         extend_tracks_radius_px of the projection whose descriptor passes COLMAP's SIFT matching tests
-        against the track's (`sara.colmap.refine.extend_tracks`). Longer tracks make a stronger final bundle
+        against the track's (`sara.colmap.tracks.extend_tracks`). Longer tracks make a stronger final bundle
         adjustment without matching more pairs.""")
     extend_tracks_radius_px: float = option(1.5, reals(0, low_open=True), """How far from a point's projection a
         keypoint may be to join its track (pixels): 1.0 and 2.0 measured worse on some of the six shared

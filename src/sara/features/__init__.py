@@ -87,7 +87,7 @@ SCALE_SCORES = frozenset({"sift"})
 
 def scores_are_scales(backend: str) -> bool:
     """Whether the features of `backend` carry each keypoint's scale as its score (the track
-    extension then also tests scales, `sara.colmap.refine.TrackExtension.scale_quantile`)."""
+    extension then also tests scales, `sara.colmap.tracks.TrackExtension.scale_quantile`)."""
     return backend in SCALE_SCORES
 
 

@@ -31,6 +31,9 @@ class PairContext:
     conf: PipelineConfig
     progress: bool = True
     executor: Any = None  # a sara.execute.Executor for parallel work; None: this process
+    #: the extract stage's focal-length estimate for a shared camera (`estimated_px`, `sound`,
+    #: `prior_px`, ...; its record's `focal`), None when it made none
+    focal_estimate: dict[str, Any] | None = None
 
 
 @dataclass

@@ -68,9 +68,10 @@ def current_key(conf: PipelineConfig, out_dir: Path) -> str:
 
 def pair_context(conf: PipelineConfig, images: ImageSet, features_path: Path, out_dir: Path, *,
                  executor: Executor | None = None, progress: bool = True, work_dir: Path | None = None) -> PairContext:
+    focal_estimate = records.done_info(out_dir, extract.STAGE).get("focal")  # the extract stage's result
     return PairContext(names=images.names, images_root=images.root, features_path=features_path,
                        db_path=out_dir / extract.DB_NAME, out_dir=work_dir or out_dir, conf=conf, progress=progress,
-                       executor=executor)
+                       executor=executor, focal_estimate=focal_estimate)
 
 
 def run(conf: PipelineConfig, images: ImageSet, features_path: Path, out_dir: Path, *,

@@ -12,8 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from ... import colmap, extract
-from ...io import records
+from ... import colmap
 from ...scoring import focal
 from .. import PairContext
 
@@ -37,22 +36,23 @@ def resolve_tree_overlap(ctx: PairContext) -> tuple[str, float | None]:
     AUC@1 on long-lens crops.
     """
     mode = ctx.conf.score.tree_overlap
-    fov = known_field_of_view(ctx.db_path, ctx.names, ctx.features_path)
+    fov = known_field_of_view(ctx.db_path, ctx.names, ctx.focal_estimate, ctx.features_path)
     if mode != "auto":
         return mode, fov
     return ("all" if fov is not None and fov >= WIDE_FIELD_OF_VIEW_DEG else "best"), fov
 
 
-def known_field_of_view(db_path: Path, names: list[str], features_path: Path | None = None) -> float | None:
+def known_field_of_view(db_path: Path, names: list[str], focal_estimate: dict[str, Any] | None = None,
+                        features_path: Path | None = None) -> float | None:
     """The median field of view (degrees, larger image side) of `names`, over the images whose
     focal length is known: from EXIF or `extract.camera_params` (the camera's prior focal length),
-    or a sound estimate from the images (`sara.scoring.focal`, the extract stage's record). None
+    or a sound estimate from the images (`focal_estimate`, the extract stage's). None
     when it is known for fewer than half of them.
 
     Features extracted by sara 0.1 before the estimate's soundness was recorded get it estimated
     again from `features_path` (a few seconds), so a resumed run chooses as a new one does."""
     cameras = colmap.cameras_by_image(db_path)
-    estimate = records.done_info(db_path.parent, extract.STAGE).get("focal") or {}
+    estimate = focal_estimate or {}
     if estimate.get("estimated_px") and "sound" not in estimate and features_path is not None:
         estimate = _estimate_again(cameras, features_path, names, estimate) or {}
     estimated = estimate.get("estimated_px") if estimate.get("sound") else None
