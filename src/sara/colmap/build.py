@@ -1,6 +1,6 @@
 """Writing a COLMAP database from arrays: one camera, its rig, and one frame and image per name.
 
-Used where the features come from elsewhere (the synthetic worlds of `sara.scale`), so that the
+Used where the features come from elsewhere (the synthetic worlds of `sara.bench.world`), so that the
 rest of sara reads the database as if COLMAP's own extraction had written it. pycolmap stays
 inside `sara.colmap`, like every other call into it.
 
