@@ -7,29 +7,34 @@ this process, on the synthetic scene, with the placeholders replaced by real pat
 such line). A command of another program is skipped only when OTHER_PROGRAMS lists it, with the
 reason; any other line fails, so the docs cannot show a command that nobody runs.
 
-Placeholders (as in the docs): IMAGES the scene's images, GT its true model, SCENE the folder
-holding both, DEST and BENCH new folders, PAIRS a pairs file of the scene, HLOC a folder of hloc
-features and matches of the scene. OUT follows what the command does with it, one output folder per
-block:
+Placeholders (as in the docs): IMAGES the synthetic scene's images (conftest's `synthetic_scene`),
+GT its true model, PAIRS a pairs file of it (the finished run's), HLOC a folder of hloc features and
+matches of it; SCENE a folder holding `images/` and `gt/` of a smaller scene of 6 images (a
+benchmark runs every method on it); DEST and BENCH new folders. OUT follows what the command does
+with it, one output folder per block:
 
 - `sara run` starts a new OUT: a copy of the session's finished run (`finished_run_template`, made
   by `sara run IMAGES OUT`), which the command resumes, redoing the stages whose settings it changes;
   an empty folder when it changes the extraction (a preset, `-s extract.*`), which a finished run
   would refuse.
-- `sara extract` starts an empty OUT (the first step of the stage-by-stage pipeline); `sara pairs`
-  continues the block's OUT, else starts one as `sara run` does.
+- `sara extract` starts a new OUT holding the finished run's features only (as `sara bench` and
+  `sara demo` share one extraction), so that the stages after it (`pairs`, `match`, `map`) do their
+  work; an empty one when it changes the extraction. `sara pairs` continues the block's OUT, else
+  starts one as `sara run` does. `sara demo OUT` gets an empty OUT.
 - every other command (`match`, `map`, `evaluate`, `export`, `report`) uses the block's OUT, or a
   copy of the finished run when the block has none yet.
 
-`sara demo` gets `--num-images 8` when it names no size: the same command on a smaller synthetic
+`sara demo` gets `--num-images 6` when it names no size: the same command on a smaller synthetic
 scene (tests/test_demo.py checks the demo's table). Commands with learned backends (minutes on a
 CPU; the synthetic scene's rendered dots do not suit them) mark their block `slow` and run on the
 shared scene middlebury-templeSparseRing when it and the weights are there. `--executor ray` runs
 where RAY_ADDRESS names a cluster (tests/test_ray.py starts one), and is skipped otherwise.
 
-Python blocks of docs/ (and of README.md outside the sections tests/test_api_examples.py runs) run
-in order, one namespace per file, in a folder holding `images/` and `gt/` of the scene, with hloc
-stood in for by test_api_examples' `fake_hloc`; registries are restored afterwards.
+Python blocks of README.md and docs/ other than those tests/test_api_examples.py runs (its hloc
+and Python API sections) run in order, one namespace per file, in a folder holding `images/` and
+`gt/` of the scene and `out/`, a copy of the finished run (the examples' `out` is the output of
+`sara run IMAGES OUT`), with hloc stood in for by test_api_examples' `fake_hloc`; registries are
+restored afterwards.
 """
 
 from __future__ import annotations
@@ -139,17 +144,16 @@ def shell_blocks() -> list[Block]:
 
 
 def python_blocks() -> list[Block]:
-    """The python blocks to run here: all of docs/, and README's outside test_api_examples' sections."""
-    readme_covered: set[str] = set()
+    """The python blocks of README.md and docs/ that tests/test_api_examples.py does not run."""
+    covered: set[str] = set()
     try:
         import test_api_examples
 
-        readme_text = (ROOT / "README.md").read_text(encoding="utf-8")
-        readme_covered = {b.strip() for b in test_api_examples.python_blocks(readme_text)}
-    except (ImportError, AssertionError):  # its sections are gone: README's blocks all run here
+        covered = {b.strip() for b in test_api_examples.python_blocks(test_api_examples.examples_source())}
+    except (ImportError, AttributeError, AssertionError, OSError):  # its sections are gone: all run here
         pass
     blocks = [b for path in markdown_files() for b in fenced_blocks(path) if b.language == "python"]
-    return numbered([b for b in blocks if not (b.path == "README.md" and b.text.strip() in readme_covered)])
+    return numbered([b for b in blocks if b.text.strip() not in covered])
 
 
 # ---------------------------------------------------------------------------------------------
@@ -324,27 +328,35 @@ def shell_params() -> list:
 class Workspace:
     """The folders of one block's commands; OUT changes as the commands go (see the module's doc)."""
 
-    def __init__(self, root: Path, images: Path, gt: Path, finished_run: Path) -> None:
-        self.root, self.images, self.gt, self.finished_run = root, images, gt, finished_run
+    def __init__(self, root: Path, images: Path, gt: Path, finished_run: Path, scene: Path) -> None:
+        self.root, self.images, self.gt, self.finished_run, self.scene = root, images, gt, finished_run, scene
         self.out: Path | None = None
         self._count = 0
         self._made: dict[str, Path] = {}
 
-    def _new_out(self, copy_finished: bool) -> Path:
+    def _new_out(self, start: str) -> Path:
+        """A new output folder: "empty", a copy of the finished run ("finished") or its "features"."""
         self._count += 1
         out = self.root / f"out{self._count}"
-        if copy_finished:
+        if start == "finished":
             shutil.copytree(self.finished_run, out, symlinks=True)
+        elif start == "features":
+            from sara.pipeline import share_features
+
+            share_features(self.finished_run, out)
         return out
 
     def out_for(self, args: list[str]) -> Path:
         command = args[0] if args else ""
+        reuse = not changes_extraction(args)
         if command == "run" or (command == "pairs" and self.out is None):
-            self.out = self._new_out(copy_finished=not changes_extraction(args))
-        elif command in ("extract", "demo"):
-            self.out = self._new_out(copy_finished=False)
+            self.out = self._new_out("finished" if reuse else "empty")
+        elif command == "extract":
+            self.out = self._new_out("features" if reuse else "empty")
+        elif command == "demo":
+            self.out = self._new_out("empty")
         elif self.out is None:
-            self.out = self._new_out(copy_finished=True)
+            self.out = self._new_out("finished")
         return self.out
 
     def path(self, name: str, args: list[str]) -> Path:
@@ -355,7 +367,7 @@ class Workspace:
         if name == "GT":
             return self.gt
         if name == "SCENE":
-            return self.images.parent
+            return self.scene
         if name not in self._made:
             self._made[name] = self._make(name)
         return self._made[name]
@@ -420,11 +432,22 @@ def test_the_docs_have_shell_blocks():
     assert any(c.sara_args for b in blocks for c in block_commands(b))
 
 
+@pytest.fixture(scope="session")
+def small_scene(tmp_path_factory) -> Path:
+    """SCENE: a folder holding `images/` and `gt/` of a synthetic scene of 6 images."""
+    from sara.synthetic import make_scene
+
+    folder = tmp_path_factory.mktemp("small_scene")
+    make_scene(folder, num_images=6)
+    return folder
+
+
 @pytest.mark.parametrize("block", shell_params())
-def test_documented_commands_run(block, synthetic_scene, finished_run_template, tmp_path, monkeypatch, run_cli):
+def test_documented_commands_run(block, synthetic_scene, small_scene, finished_run_template, tmp_path, monkeypatch,
+                                 run_cli):
     commands = block_commands(block)
     images, gt = learned_scene() if block_needs_learned_backends(block) else synthetic_scene
-    space = Workspace(tmp_path, images, gt, finished_run_template)
+    space = Workspace(tmp_path, images, gt, finished_run_template, small_scene)
     monkeypatch.chdir(tmp_path)
     not_run = []
     for command in commands:
@@ -440,7 +463,7 @@ def test_documented_commands_run(block, synthetic_scene, finished_run_template, 
             not_run.append(f"{where} (needs a Ray cluster: set RAY_ADDRESS; tests/test_ray.py runs one)")
             continue
         if args[:1] == ["demo"] and option(args, "--num-images") is None:
-            args = [*args, "--num-images", "8"]
+            args = [*args, "--num-images", "6"]
         argv, env = space.substitute(args, command.env)
         for name, value in env.items():
             monkeypatch.setenv(name, value)
@@ -481,12 +504,14 @@ def python_files() -> list:
 
 
 @pytest.mark.parametrize("blocks", python_files())
-def test_documented_python_runs(blocks, synthetic_scene, tmp_path, monkeypatch, registries_restored):
+def test_documented_python_runs(blocks, synthetic_scene, finished_run_template, tmp_path, monkeypatch,
+                                registries_restored):
     from test_api_examples import fake_hloc
 
     images, gt = synthetic_scene
     shutil.copytree(images, tmp_path / "images")
     shutil.copytree(gt, tmp_path / "gt")
+    shutil.copytree(finished_run_template, tmp_path / "out", symlinks=True)
     package = fake_hloc(tmp_path / "gt")
     for name, module in (("hloc", package), ("hloc.extract_features", package.extract_features),
                          ("hloc.match_features", package.match_features)):
@@ -523,16 +548,19 @@ def test_lines_are_split_and_checked_as_the_shell_would(tmp_path):
     assert other_program(["make", "install"]) is None
 
 
-def test_placeholders_and_out(tmp_path, finished_run_template, synthetic_scene):
+def test_placeholders_and_out(tmp_path, finished_run_template, synthetic_scene, small_scene):
     images, gt = synthetic_scene
-    space = Workspace(tmp_path, images, gt, finished_run_template)
+    space = Workspace(tmp_path, images, gt, finished_run_template, small_scene)
     run = space.substitute(["run", "IMAGES", "OUT", "--gt", "GT"])[0]
     assert run[1:] == [str(images), str(tmp_path / "out1"), "--gt", str(gt)]
     assert (tmp_path / "out1" / "run.json").exists()  # resumes the finished run
     assert space.substitute(["export", "OUT", "DEST/x"])[0][1:] == [str(tmp_path / "out1"), str(tmp_path / "dest/x")]
     assert space.substitute(["run", "IMAGES", "OUT", "--preset", "sift-fast"])[0][2] == str(tmp_path / "out2")
     assert not (tmp_path / "out2").exists()  # other extraction settings: a new folder
-    assert space.substitute(["bench", "SCENE", "--out", "BENCH"])[0][1] == str(images.parent)
+    assert space.substitute(["bench", "SCENE", "--out", "BENCH"])[0][1] == str(small_scene)
+    extract = space.substitute(["extract", "IMAGES", "OUT"])[0]
+    assert extract[2] == str(tmp_path / "out3") and not (tmp_path / "out3" / "pairs.txt").exists()
+    assert next((tmp_path / "out3").glob("features-*.h5"))  # the finished run's features only
     assert Path(space.substitute(["match", "OUT", "--pairs", "PAIRS"])[0][3]).read_text().strip()
     assert needs_learned_backends(["run", "IMAGES", "OUT", "--preset", "aliked-lightglue"])
     assert not needs_learned_backends(["run", "IMAGES", "OUT", "-s", "retrieval.num_neighbors=3"])
