@@ -22,6 +22,7 @@ import types
 from pathlib import Path
 
 import pytest
+
 from test_hloc import match_mutual_nn, write_superpoint_like
 
 DOCS = [Path(__file__).resolve().parents[1] / "docs" / name for name in ("interop.md", "usage.md")]

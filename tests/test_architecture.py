@@ -169,7 +169,8 @@ def test_modules_inside_a_package_keep_their_floors() -> None:
 def test_the_pipeline_knows_no_pair_source_by_name() -> None:
     """SARA's logic lives in sara.pairs.sara; the pipeline drives any source through its protocols,
     and no other room imports SARA's package (the registry names it in a string)."""
-    named = [f"{path.relative_to(SRC)}:{node.lineno} {node.value!r}" for path in sorted((SRC / "pipeline").rglob("*.py"))
+    pipeline = sorted((SRC / "pipeline").rglob("*.py"))
+    named = [f"{path.relative_to(SRC)}:{node.lineno} {node.value!r}" for path in pipeline
              for node in ast.walk(ast.parse(path.read_text(encoding="utf-8")))
              if isinstance(node, ast.Constant) and node.value in ("sara", "repair", "vocab_tree.bin", "global-*.h5")]
     assert not named, f"the pipeline names a pair source or its files: {named}"

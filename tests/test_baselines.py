@@ -198,7 +198,8 @@ def test_baseline_pairs_do_not_depend_on_saras_own_settings():
     changed = {"budget.max_pairs_per_image": 2.5, "score.min_inliers": 12}
     for method in ("exhaustive", "retrieval", "sequential"):
         base = make_config("sift-offline", {"pairs.method": method})
-        assert pairs_key(base, "x", None) == pairs_key(make_config("sift-offline", {"pairs.method": method, **changed}), "x", None)
+        other = make_config("sift-offline", {"pairs.method": method, **changed})
+        assert pairs_key(base, "x", None) == pairs_key(other, "x", None)
     sara = make_config("sift-offline")
     assert pairs_key(sara, "x", None) != pairs_key(make_config("sift-offline", changed), "x", None)
     retrieval = make_config("sift-offline", {"pairs.method": "retrieval"})

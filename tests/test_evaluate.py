@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 import pytest
+
 from model_utils import (
     PinholeCamera,
     Point3D,
@@ -18,7 +19,6 @@ from model_utils import (
     transform_poses,
     write_text_model,
 )
-
 from sara.colmap import load_poses, reprojection_errors_px
 from sara.evaluation import evaluate as run
 from sara.evaluation import evaluate_models, find_model_dirs, format_table

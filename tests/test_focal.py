@@ -9,7 +9,6 @@ import pytest
 from PIL import Image
 
 from conftest import scene_dir
-
 from sara.pairs.sara.field_of_view import known_field_of_view, resolve_tree_overlap
 from sara.scoring import focal
 
@@ -114,7 +113,8 @@ def test_the_new_setting_keeps_earlier_extractions_valid(tmp_path: Path):
     from sara.io.images import scan_images
 
     for k in range(2):
-        Image.fromarray(np.random.default_rng(k).integers(0, 255, (48, 64, 3), dtype=np.uint8)).save(tmp_path / f"{k}.png")
+        pixels = np.random.default_rng(k).integers(0, 255, (48, 64, 3), dtype=np.uint8)
+        Image.fromarray(pixels).save(tmp_path / f"{k}.png")
     images = scan_images(tmp_path, progress=False)
     out = tmp_path / "out"
     before = {k: v for k, v in ExtractConfig().__dict__.items() if k != "estimate_focal"}
@@ -179,11 +179,13 @@ def test_quarter_size_frames_of_a_wide_lens_give_a_sound_estimate(tmp_path: Path
     record_path.write_text(json.dumps(record))
     features = next((tmp_path / "out").glob("features-*.h5"))
     assert known_field_of_view(tmp_path / "out" / "database.db", names, _estimate(tmp_path / "out")) is None
-    assert known_field_of_view(tmp_path / "out" / "database.db", names, _estimate(tmp_path / "out"), features) == pytest.approx(fov)
+    again = known_field_of_view(tmp_path / "out" / "database.db", names, _estimate(tmp_path / "out"), features)
+    assert again == pytest.approx(fov)
     # known focal lengths (camera_params: COLMAP's prior focal length) count as well: a long lens
     out = tmp_path / "known"
     _extract_focal(images, out, camera_params="1380,192,128,0")
-    assert known_field_of_view(out / "database.db", names, _estimate(out)) == pytest.approx(np.degrees(2 * np.arctan(192 / 1380)))
+    long_lens = np.degrees(2 * np.arctan(192 / 1380))
+    assert known_field_of_view(out / "database.db", names, _estimate(out)) == pytest.approx(long_lens)
     assert resolve_tree_overlap(_pair_context(out, names))[0] == "best"
 
 

@@ -2,9 +2,9 @@ from pathlib import Path
 
 import pytest
 
+from sara.io.pairs import canonical_pairs, read_pairs, write_pairs
 from sara.pairs.exhaustive import exhaustive_pairs
 from sara.pairs.sequential import sequential_pairs
-from sara.io.pairs import canonical_pairs, read_pairs, write_pairs
 
 
 def names(n):

@@ -7,7 +7,6 @@ import numpy as np
 import pytest
 
 from conftest import scene_dir
-
 from sara.config import make_config
 from sara.io import read_json
 from sara.pipeline import run

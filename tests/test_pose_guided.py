@@ -154,7 +154,8 @@ def test_select_pairs_respects_max_pairs_but_keeps_the_tree():
 
 def test_densify_keeps_the_first_round_and_caps_at_sixty_percent_of_exhaustive():
     conf = dataclasses.replace(CAPPED, densify=True)
-    assert first_round_cap(11, conf, POSE_GUIDED_PAIRS_PER_IMAGE) == 13  # no room kept back: densify adds to the usual selection
+    # no room kept back: densify adds to the usual selection
+    assert first_round_cap(11, conf, POSE_GUIDED_PAIRS_PER_IMAGE) == 13
     assert conf.densify_cap(11) == 33  # 60% of 55
     assert conf.densify_cap(47) == 8 * 47
 

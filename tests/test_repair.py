@@ -75,7 +75,8 @@ def test_a_repair_that_leaves_most_of_its_views_out_is_not_repeated(tmp_path: Pa
     registered.discard("d")
     assert sara_source.after_mapping(ctx, pairs + first + second + third, model).pairs == [("b", "d"), ("c", "e")]
     # a record of another selection does not apply
-    (tmp_path / "scores.csv").write_text(header + "".join(f"{a},{b},50,40,0.1,5,0.1,true,,tree\n" for a, b in pairs[:3]))
+    rows = "".join(f"{a},{b},50,40,0.1,5,0.1,true,,tree\n" for a, b in pairs[:3])
+    (tmp_path / "scores.csv").write_text(header + rows)
     registered.add("d")
     assert sara_source.after_mapping(ctx, pairs + first + second, model).pairs == [("c", "e")]
 

@@ -9,10 +9,10 @@ import h5py
 import numpy as np
 import pytest
 
-from sara import retrieval
 import sara.retrieval.vlad  # noqa: F401
+from sara import retrieval
 from sara.config import RetrievalConfig
-from sara.io.h5 import Features, write_features
+from sara.descriptors import l2_normalize, mutual_nearest_neighbours
 from sara.gt_pairs import (
     GtView,
     count_consistent_matches,
@@ -20,10 +20,10 @@ from sara.gt_pairs import (
     overlapping_pairs,
     strong_pairs,
 )
-from sara.scoring.twoview import sampson_distance as sampson_distance_px
-from sara.descriptors import l2_normalize, mutual_nearest_neighbours
+from sara.io.h5 import Features, write_features
 from sara.retrieval import get_descriptor, knn_pairs
 from sara.retrieval.vlad import BowDescriptor, VladDescriptor, kmeans, vlad
+from sara.scoring.twoview import sampson_distance as sampson_distance_px
 
 # ----------------------------------------------------------------------------------------
 # knn_pairs

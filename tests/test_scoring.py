@@ -10,9 +10,9 @@ import h5py
 import numpy as np
 import pycolmap
 import pytest
-from model_utils import PinholeCamera, look_at, rotation_about_axis
 
 import sara.scoring.scorer as scorer_module
+from model_utils import PinholeCamera, look_at, rotation_about_axis
 from sara.config import ScoreConfig
 from sara.io.h5 import Features, write_features
 from sara.scoring import (

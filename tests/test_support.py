@@ -65,5 +65,6 @@ def test_the_source_adds_support_pairs_once_per_selection(tmp_path: Path, monkey
     assert sara_source.before_mapping(ctx, pairs, tmp_path / "database.db") == [("a", "c")]
     inliers[("a", "c")] = 0
     assert sara_source.before_mapping(ctx, pairs + extra, tmp_path / "database.db") == []
-    off = SimpleNamespace(names=ctx.names, out_dir=tmp_path, conf=make_config(overrides={"rounds.support_min_view_inliers": 0}))
+    conf_off = make_config(overrides={"rounds.support_min_view_inliers": 0})
+    off = SimpleNamespace(names=ctx.names, out_dir=tmp_path, conf=conf_off)
     assert sara_source.before_mapping(off, pairs, tmp_path / "database.db") == []

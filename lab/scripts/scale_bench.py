@@ -660,7 +660,8 @@ def plot(records: list[dict[str, Any]], path: Path) -> bool:
     ref = [n0, max(ns[-1], n0 * 10)]
     ax_t.plot(ref, [t0, t0 * ref[1] / n0], "k:", lw=1, label="O(N) from the first")
     ax_t.plot(ref, [t0, t0 * (ref[1] / n0) ** 2], "k--", lw=1, label="O(N^2)")
-    ax_t.set(xscale="log", yscale="log", xlabel="images N", ylabel="seconds", title="selection time (CPU s, all threads)")
+    ax_t.set(xscale="log", yscale="log", xlabel="images N", ylabel="seconds",
+             title="selection time (CPU s, all threads)")
     ax_t.legend(fontsize=8)
     ax_m.plot(ns, [r["peak_rss_gib"] for r in done], "ks-", lw=2, label="peak RSS")
     for s in stages:
@@ -750,7 +751,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--min-common", type=int, default=20, help="common 3D points for a true overlap")
     p.add_argument("--timeout-min", type=float, default=20.0, help="stop a selection run after this long")
     p.add_argument("--max-rss-gib", type=float, default=16.0, help="stop a selection run above this memory")
-    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="sara option, e.g. score.num_keypoints=512")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="sara option, e.g. score.num_keypoints=512")
     p.add_argument("--world", action="append", default=[], metavar="KEY=VALUE", help="world option, e.g. step_m=1.5")
     p.add_argument("--profile", choices=["cprofile", "tracemalloc"], help="profile the runs (kept out of the table)")
     p.add_argument("--sara-src", type=Path, help="import sara from this folder in the subprocess")

@@ -52,7 +52,8 @@ def fundamental_from_poses(view1: GtView, view2: GtView) -> np.ndarray:
 
 def read_gt_views(gt_dir: Path) -> dict[str, GtView]:
     """name -> GtView from a COLMAP model folder (PINHOLE cameras expected; others use their K)."""
-    return {name: GtView(K=K, R=R, t=t, size=size) for name, (K, R, t, size) in colmap.cameras_and_poses(gt_dir).items()}
+    views = colmap.cameras_and_poses(gt_dir)
+    return {name: GtView(K=K, R=R, t=t, size=size) for name, (K, R, t, size) in views.items()}
 
 
 def _load_matching_features(features_path: Path, name: str, view: GtView,

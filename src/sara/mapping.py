@@ -64,7 +64,8 @@ def run(conf: MapConfig, db_path: Path, images_root: Path, out_dir: Path, *, see
         sizes = colmap.write_models_by_size(tmp, recs)
         if not sizes:
             kept = "; the previous model in sparse/ is kept" if colmap_models(sparse) else ""
-            raise NoResultError(f"map: no model could be built: {no_model_reason(db_path, conf, min_num_inliers)}{kept}")
+            reason = no_model_reason(db_path, conf, min_num_inliers)
+            raise NoResultError(f"map: no model could be built: {reason}{kept}")
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         records.restore(out_dir, STAGE, previous)

@@ -15,7 +15,6 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-
 # ---------------------------------------------------------------------------------------------
 # Errors that say what a user must do (the CLI maps each family to one exit code)
 # ---------------------------------------------------------------------------------------------

@@ -17,8 +17,8 @@ from . import PairContext, PairResult, PairSource
 def select(ctx: PairContext) -> PairResult:
     rconf = ctx.conf.retrieval
     tic = time.perf_counter()
-    global_path = retrieval.run(rconf, ctx.features_path, ctx.names, ctx.out_dir, images_root=ctx.images_root, progress=ctx.progress,
-                                seed=ctx.conf.seed)
+    global_path = retrieval.run(rconf, ctx.features_path, ctx.names, ctx.out_dir, images_root=ctx.images_root,
+                                progress=ctx.progress, seed=ctx.conf.seed)
     names, desc = retrieval.read_global(global_path)
     describe_s = time.perf_counter() - tic
     tic = time.perf_counter()

@@ -12,9 +12,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..config import PipelineConfig
 from ..descriptors import top_k_cosine
 from ..io.pairs import Pair, canonical_pairs
-from ..config import PipelineConfig
 from . import PairContext, PairResult, PairSource
 
 
@@ -49,8 +49,8 @@ def loop_pairs(ctx: PairContext, order: list[str]) -> list[Pair]:
     conf = ctx.conf.sequential
     if conf.loop_period < 1 or conf.loop_neighbors < 1:
         raise ValueError("sequential.loop_period and sequential.loop_neighbors must be at least 1")
-    path = retrieval.run(ctx.conf.retrieval, ctx.features_path, order, ctx.out_dir, images_root=ctx.images_root, progress=ctx.progress,
-                         seed=ctx.conf.seed)
+    path = retrieval.run(ctx.conf.retrieval, ctx.features_path, order, ctx.out_dir, images_root=ctx.images_root,
+                         progress=ctx.progress, seed=ctx.conf.seed)
     names, desc = retrieval.read_global(path)
     row = {name: i for i, name in enumerate(names)}
     desc = desc[[row[name] for name in order]]

@@ -284,7 +284,8 @@ def select_pairs(
         accepted: (E,) bool; rejected pairs are never selected.
         conf: budgets and thresholds; defaults to ``GraphConfig()``.
         max_pairs: at most this many pairs in all (the augmentation budgets shrink in proportion;
-            the spanning forest is always kept); None: no cap. The caller's pair budget gives it (SARA: `sara.pairs.sara.budget`).
+            the spanning forest is always kept); None: no cap. The caller's pair budget gives it
+            (SARA: `sara.pairs.sara.budget`).
         tree_weight: (E,) float64 the weight the spanning forest maximises (finite and >= 0 for
             accepted pairs); None: ``weight``. The augmentation always ranks by ``weight``.
     Returns:

@@ -25,7 +25,8 @@ class PairBudget:
     @property
     def cap(self) -> int:
         """Most pairs of every round together (`BudgetConfig.pair_cap`, or `densify_cap` with densify)."""
-        return self.budget.densify_cap(self.num_images) if self.budget.densify else self.budget.pair_cap(self.num_images)
+        budget, num = self.budget, self.num_images
+        return budget.densify_cap(num) if budget.densify else budget.pair_cap(num)
 
     def first_round(self) -> int:
         """Most pairs of the first selection: the cap less what the pose-guided round after mapping

@@ -14,7 +14,6 @@ import logging
 import time
 from dataclasses import replace
 from itertools import combinations
-from pathlib import Path
 from typing import Any
 
 import numpy as np
