@@ -19,10 +19,23 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import NamedTuple
 
+import pytest
+
 from sara.cli import main
 
 #: what a crash below Python prints; never allowed on stderr
 NATIVE_NOISE = ("Traceback", "*** Aborted", "stack trace", "SIGSEGV", "SIGABRT", "terminate called")
+
+#: the shared scenes with known poses (`../shared/data` beside the project, or $SARA_DATA)
+DATA_ROOT = Path(os.environ.get("SARA_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
+
+
+def scene_dir(name: str) -> Path:
+    """A shared scene's folder; the test is skipped, with the reason, where it is absent."""
+    path = DATA_ROOT / name
+    if not (path / "images").is_dir():
+        pytest.skip(f"real scene {name} not available at {path} (set SARA_DATA to its parent folder)")
+    return path
 
 
 class CliResult(NamedTuple):

@@ -409,7 +409,7 @@ def make_hloc_folder(folder: Path, gt: Path, pairs: Path) -> Path:
 
 
 def learned_scene() -> tuple[Path, Path]:
-    from conftest import scene_dir
+    from harness import scene_dir
 
     pytest.importorskip("kornia")
     from sara import weights

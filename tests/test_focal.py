@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from conftest import scene_dir
+from harness import scene_dir
 from sara.pairs.sara.field_of_view import known_field_of_view, resolve_tree_overlap
 from sara.scoring import focal
 

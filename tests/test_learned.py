@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import scene_dir
+from harness import scene_dir
 from sara import weights
 from sara.config import ExtractConfig, MatchConfig
 from sara.io.h5 import Features

@@ -6,7 +6,7 @@ import h5py
 import numpy as np
 import pytest
 
-from conftest import scene_dir
+from harness import scene_dir
 from sara.config import make_config
 from sara.io import read_json
 from sara.pipeline import run

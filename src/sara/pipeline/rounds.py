@@ -88,8 +88,8 @@ def _commit_pairs(run: RoundsRun, added: Round, extra: dict[str, Any]) -> None:
     move in `recover`), then the file."""
     info = ledger(run.out_dir, run.selection_key)
     roles = info.setdefault("added", {})
-    roles[added.role] = sorted({tuple(p) for p in roles.get(added.role, [])} | {tuple(p) for p in added.pairs})
-    roles[added.role] = [list(p) for p in roles[added.role]]
+    pairs = {tuple(p) for p in roles.get(added.role, [])} | {tuple(p) for p in added.pairs}
+    roles[added.role] = [list(p) for p in sorted(pairs)]
     info.update(extra, pairs_digest=file_digest(run.staged))
     _save(run, info)
     os.replace(run.staged, run.out_dir / PAIRS_NAME)
