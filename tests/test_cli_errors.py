@@ -42,6 +42,7 @@ def test_unreadable_pairs_file(tmp_path: Path, synthetic_scene, run_cli):
     pairs = tmp_path / "pairs.txt"
     pairs.write_bytes(b"\xff\xfe\x00garbage")
     assert_error(run_cli("run", images, tmp_path / "out", "--pairs", pairs, "-q"), 2, "not UTF-8")
+    assert not (tmp_path / "out").exists()  # before any work: no features extracted first
 
 
 def test_pairs_naming_unknown_images(tmp_path: Path, synthetic_scene, run_cli):
@@ -51,6 +52,7 @@ def test_pairs_naming_unknown_images(tmp_path: Path, synthetic_scene, run_cli):
     pairs.write_text(f"{first} ghost.png\n")
     result = run_cli("run", images, tmp_path / "out", "--pairs", pairs, "-q")
     assert_error(result, 2, "'ghost.png' is not among the images")
+    assert not (tmp_path / "out").exists()
 
 
 def test_missing_pairs_source(tmp_path: Path, synthetic_scene, run_cli):

@@ -16,6 +16,7 @@ from ..execute import Executor, make_executor
 from ..features import BACKENDS as FEATURE_BACKENDS
 from ..io import NoResultError, OutputLock, fingerprint, prepare_output_dir, records, write_text_atomic
 from ..io.images import ImageSet, scan_images, upright_copy
+from ..io.pairs import read_pairs
 from ..matchers import BACKENDS as MATCHER_BACKENDS
 from ..matchers import resolve_name
 from ..pairs import get_source
@@ -45,6 +46,9 @@ def run(conf: PipelineConfig, images_root: Path, out_dir: Path, *, gt_dir: Path 
                          "at least 2")
     if gt_dir is not None:
         _check_ground_truth(Path(gt_dir), images_root, images.names)
+    pairs_file = pairs_stage.pair_source_file(conf.pairs.method)
+    if pairs_file is not None and stop_after != "extract":
+        read_pairs(pairs_file, known_names=images.names)  # unreadable, or naming other images: before any work
     prepare_output_dir(out_dir)
     executor = make_executor(conf.execute.executor, conf.execute.workers, conf.execute.ray_address)
     try:
