@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Behaviour kept across a refactoring: the same bench (exhaustive and sara, SIFT defaults) on the
 # six shared scenes with two source trees, e.g. the commit before the change (a `git worktree`)
-# and after it. Features are extracted once (by the first run) and shared by hard links.
+# and after it. Features are extracted once (by the first run) and shared by hard links; run the
+# three one after the other (a copy taken while old1 still extracts would be incomplete).
 #
 #   lab/scripts/same_behaviour.sh OLD_SRC NEW_SRC DATA OUT
 #
@@ -16,7 +17,9 @@ for tag in old1 old2 new1; do
   case $tag in old*) src=$OLD_SRC;; *) src=$NEW_SRC;; esac
   for s in $SCENES; do
     if [ ! -d "$OUT/$tag/$s/features" ] && [ -d "$OUT/old1/$s/features" ]; then
+      # hard links, but not the lock file: a shared inode would share old1's lock too
       mkdir -p "$OUT/$tag/$s" && cp -al "$OUT/old1/$s/features" "$OUT/$tag/$s/features"
+      rm -f "$OUT/$tag/$s/features/.sara.lock"
     fi
     echo "== $tag $s $(date +%T)"
     PYTHONPATH=$src $PY -m sara bench "$DATA/$s" --quiet --out "$OUT/$tag" --methods exhaustive,sara --no-plot \
