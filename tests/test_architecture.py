@@ -192,3 +192,22 @@ def test_no_module_or_function_too_long_to_read() -> None:
                 if length > MAX_FUNCTION_LINES:
                     long_functions.append(f"{path.relative_to(SRC)}:{node.lineno} {node.name} ({length})")
     assert not long_functions, f"functions over {MAX_FUNCTION_LINES} lines: {long_functions}"
+
+
+def test_the_colmap_adapter_hands_out_sara_types_only() -> None:
+    """No public function of sara.colmap takes or returns a pycolmap object: an API change of
+    pycolmap is mended inside the adapter, never in the rooms that call it."""
+    import inspect
+
+    import sara.colmap as adapter
+
+    leaking = []
+    for name in adapter.__all__:
+        target = getattr(adapter, name)
+        if not callable(target) or inspect.isclass(target):
+            continue
+        signature = inspect.signature(target)
+        annotations = [str(signature.return_annotation)] + [str(p.annotation) for p in signature.parameters.values()]
+        if any("pycolmap" in text for text in annotations):
+            leaking.append(name)
+    assert not leaking, f"sara.colmap functions with pycolmap types in their signature: {leaking}"

@@ -19,7 +19,8 @@ from model_utils import (
     transform_poses,
     write_text_model,
 )
-from sara.colmap import load_poses, reprojection_errors_px
+from sara.colmap import load_poses
+from sara.colmap.reconstruction import reprojection_errors_px
 from sara.evaluation import evaluate as run
 from sara.evaluation import evaluate_models, find_model_dirs, format_table
 from sara.evaluation.metrics import (

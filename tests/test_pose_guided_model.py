@@ -167,7 +167,7 @@ def test_continuing_from_a_model_without_points_on_the_new_matches(model: Path, 
 
 def test_a_model_inside_a_larger_one_is_not_written(model: Path, tmp_path: Path):
     """[8, 5] where the 5 views are also in the 8-view model: one model, not two."""
-    from sara.colmap import write_models_by_size
+    from sara.colmap.sfm import write_models_by_size
 
     full = pycolmap.Reconstruction(str(model / "sparse" / "0"))
     part = pycolmap.Reconstruction(str(model / "sparse" / "0"))

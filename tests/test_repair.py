@@ -100,12 +100,12 @@ def test_a_continued_model_is_mapped_anew_only_when_it_gained_no_view(tmp_path: 
 
     def fake_map(conf, db_path, images_root, tmp, seed, progress, input_model=None):
         maps.append("continued" if input_model is not None else "scratch")
-        return {0: _Model(continued if input_model is not None else 12)}, 20, 0.1
+        return mapping.colmap.MappedModels({0: _Model(continued if input_model is not None else 12)}), 20, 0.1
 
     monkeypatch.setattr(mapping, "_map", fake_map)
     monkeypatch.setattr(mapping.colmap_refine, "triangulate_new_matches", lambda *args, **kwargs: None)
-    monkeypatch.setattr(mapping.colmap, "read_model", lambda path: _Model(10))
+    monkeypatch.setattr(mapping.colmap, "registered_images", lambda path: {f"v{k}" for k in range(10)})
     monkeypatch.setattr(mapping.colmap, "verified_graph", lambda db_path, min_num_inliers: (30, 20, [20], 100))
     recs, _, _ = mapping._extend(MapConfig(), tmp_path / "db", tmp_path, tmp_path, 0, False, tmp_path / "in", 15)
     assert maps == (["continued", "scratch"] if scratch_runs else ["continued"])
-    assert recs[0].num_reg_images() == (12 if scratch_runs else continued)  # the larger model is kept
+    assert recs.largest == (12 if scratch_runs else continued)  # the larger model is kept

@@ -64,7 +64,7 @@ def test_files_load_with_sara_readers(world):
     cameras = colmap.cameras_by_image(world / "database.db")
     assert sorted(cameras) == names
     cam = cameras[names[0]]
-    assert cam.model.name == "PINHOLE" and colmap.mean_focal_px(cam) == pytest.approx(900.0)
+    assert cam.model == "PINHOLE" and colmap.mean_focal_px(cam) == pytest.approx(900.0)
     conf = info["config"]
     for name in names[::17]:
         feats = read_features(features_path(world), name)

@@ -61,7 +61,7 @@ def run(conf: MapConfig, db_path: Path, images_root: Path, out_dir: Path, *, see
                                                 min_num_inliers)
         else:
             recs, num_images, elapsed = _map(conf, db_path, images_root, tmp, seed, progress)
-        sizes = colmap.write_models_by_size(tmp, recs)
+        sizes = recs.write_by_size(tmp)
         if not sizes:
             kept = "; the previous model in sparse/ is kept" if colmap_models(sparse) else ""
             reason = no_model_reason(db_path, conf, min_num_inliers)
@@ -82,7 +82,7 @@ def run(conf: MapConfig, db_path: Path, images_root: Path, out_dir: Path, *, see
 
 
 def _map(conf: MapConfig, db_path: Path, images_root: Path, tmp: Path, seed: int,
-         progress: bool, input_model: Path | None = None) -> tuple[dict, int, float]:
+         progress: bool, input_model: Path | None = None) -> tuple[colmap.MappedModels, int, float]:
     """COLMAP's mapper into `tmp` (continuing from `input_model` when given, incremental only)."""
     num_images = len(colmap.database_images(db_path))
     colmap.set_seed(seed)
@@ -102,7 +102,7 @@ def _map(conf: MapConfig, db_path: Path, images_root: Path, tmp: Path, seed: int
 
 
 def _extend(conf: MapConfig, db_path: Path, images_root: Path, tmp: Path, seed: int, progress: bool,
-            input_model: Path, min_num_inliers: int) -> tuple[dict, int, float]:
+            input_model: Path, min_num_inliers: int) -> tuple[colmap.MappedModels, int, float]:
     """Continue from `input_model`. When that registers none of the views it lacked although
     verified pairs join them to it, map from scratch too and keep the result whose largest model
     holds more views (the continued one on a tie).
@@ -120,17 +120,17 @@ def _extend(conf: MapConfig, db_path: Path, images_root: Path, tmp: Path, seed: 
     start = tmp / "input"
     colmap_refine.triangulate_new_matches(input_model, db_path, images_root, start, num_threads=conf.num_threads,
                                           seed=seed)
-    before = colmap.num_registered(colmap.read_model(start))
+    before = len(colmap.registered_images(start))
     recs, num_images, _ = _map(conf, db_path, images_root, tmp / "extended", seed, progress, start)
     reachable = max(colmap.verified_graph(db_path, min_num_inliers)[2], default=0)
-    extended = max((r.num_reg_images() for r in recs.values()), default=0)
+    extended = recs.largest
     if extended < reachable:
         logger.info("map: continuing from the model of %d views registered %d of the %d views joined by verified "
                     "pairs%s", before, extended, reachable, "" if extended > before else "; mapping from scratch too")
     if extended < reachable and extended <= before:
         (tmp / "scratch").mkdir()
         scratch_recs, _, scratch_s = _map(conf, db_path, images_root, tmp / "scratch", seed, progress)
-        from_scratch = max((r.num_reg_images() for r in scratch_recs.values()), default=0)
+        from_scratch = scratch_recs.largest
         logger.info("map: from scratch %d views in %.1f s against %d continued: keeping the %s model",
                     from_scratch, scratch_s, extended, "new" if from_scratch > extended else "continued")
         if from_scratch > extended:

@@ -42,22 +42,24 @@ from .database_queries import (
     verified_graph,
     verified_inliers,
 )
-from .geometry import colmap_to_hloc_keypoints, hloc_to_colmap_keypoints, image_to_normalized, mean_focal_px
+from .geometry import (
+    CameraInfo,
+    colmap_to_hloc_keypoints,
+    hloc_to_colmap_keypoints,
+    image_to_normalized,
+    mean_focal_px,
+)
 from .matching import VERIFICATION_SEED, estimate_fundamental, match_pairs, verify_pairs
 from .native import ColmapError, quiet_signals_in_worker, send_log_to, set_seed, version
 from .reconstruction import (
+    ModelSummary,
     cameras_and_poses,
     has_model,
     load_poses,
-    model_structure,
-    num_registered,
-    poses_of,
-    read_model,
-    read_reconstruction,
+    read_summary,
     registered_images,
-    reprojection_errors_px,
 )
-from .sfm import global_mapping, incremental_mapping, mapper_init_requirements, write_models_by_size
+from .sfm import MappedModels, global_mapping, incremental_mapping, mapper_init_requirements
 from .sift import FeatureReader, extract_sift, image_read_problem, sift_of_image
 from .synthetic import synthesize_scene
 from .vocabtree import build_visual_index, vocab_tree_retrieval
@@ -65,7 +67,10 @@ from .vocabtree import build_visual_index, vocab_tree_retrieval
 __all__ = [
     "VERIFICATION_SEED",
     "ColmapError",
+    "CameraInfo",
     "FeatureReader",
+    "MappedModels",
+    "ModelSummary",
     "build_visual_index",
     "cameras_and_poses",
     "cameras_by_image",
@@ -93,17 +98,12 @@ __all__ = [
     "match_counts",
     "match_pairs",
     "mean_focal_px",
-    "model_structure",
-    "num_registered",
-    "poses_of",
     "quiet_signals_in_worker",
-    "read_model",
-    "read_reconstruction",
+    "read_summary",
     "registered_images",
     "remove_database",
     "rename_images",
     "replace_database",
-    "reprojection_errors_px",
     "send_log_to",
     "set_focal_length",
     "set_seed",
@@ -119,5 +119,4 @@ __all__ = [
     "vocab_tree_retrieval",
     "write_keypoints",
     "write_matches",
-    "write_models_by_size",
 ]

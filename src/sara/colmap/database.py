@@ -17,6 +17,7 @@ import numpy as np
 import pycolmap
 
 from ..io import atomic_path
+from .geometry import CameraInfo
 from .native import native_errors
 
 _CAMERA_MODES = {
@@ -116,18 +117,18 @@ def rename_images(db_path: Path, new_names: dict[int, str]) -> None:
             db.update_image(image)
 
 
-def cameras_by_image(db_path: Path) -> dict[str, pycolmap.Camera]:
-    """name -> the pycolmap.Camera (intrinsics as imported: EXIF focal or COLMAP's prior)."""
+def cameras_by_image(db_path: Path) -> dict[str, CameraInfo]:
+    """name -> its camera (intrinsics as imported: EXIF focal or COLMAP's prior)."""
     with open_pycolmap_database(db_path) as db:
-        cams = {c.camera_id: c for c in db.read_all_cameras()}
+        cams = {c.camera_id: CameraInfo.of(c) for c in db.read_all_cameras()}
         return {im.name: cams[im.camera_id] for im in db.read_all_images()}
 
 
-def shared_camera(db_path: Path) -> pycolmap.Camera | None:
+def shared_camera(db_path: Path) -> CameraInfo | None:
     """The database's camera when every image uses one and the same, else None."""
     with open_pycolmap_database(db_path) as db:
         cameras = db.read_all_cameras()
-    return cameras[0] if len(cameras) == 1 else None
+    return CameraInfo.of(cameras[0]) if len(cameras) == 1 else None
 
 
 def set_focal_length(db_path: Path, camera_id: int, focal_px: float) -> None:

@@ -4,6 +4,7 @@ its reprojection errors. Poses are cam_from_world, (R (3, 3), t (3,)) float64: x
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -142,3 +143,22 @@ def reprojection_errors_px(rec: pycolmap.Reconstruction) -> np.ndarray:
 def model_structure(rec: pycolmap.Reconstruction) -> tuple[int, int, np.ndarray]:
     """(3D points, observations, reprojection error of every observation in pixels (NaN behind))."""
     return rec.num_points3D(), rec.compute_num_observations(), reprojection_errors_px(rec)
+
+
+@dataclass(frozen=True)
+class ModelSummary:
+    """What the evaluation reads of one model: its poses (cam_from_world, by image name), the views
+    it registered, its 3D points, their observations and reprojection errors (pixels)."""
+
+    poses: dict[str, tuple[np.ndarray, np.ndarray]]
+    num_registered: int
+    num_points3d: int
+    num_observations: int
+    reprojection_errors_px: np.ndarray
+
+
+def read_summary(model_dir: Path) -> ModelSummary:
+    """The summary of a model folder (FileNotFoundError as `read_reconstruction`)."""
+    rec = read_reconstruction(model_dir)
+    num_points, num_observations, errors = model_structure(rec)
+    return ModelSummary(poses_of(rec), num_registered(rec), int(num_points), int(num_observations), errors)

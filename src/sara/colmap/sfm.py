@@ -7,6 +7,7 @@ import contextlib
 import logging
 import os
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
 import pycolmap
@@ -23,11 +24,27 @@ def mapper_init_requirements() -> tuple[int, float]:
     return int(opts.mapper.init_min_num_inliers), float(opts.mapper.init_min_tri_angle)
 
 
+@dataclass
+class MappedModels:
+    """The models of one mapping, kept inside the adapter: how many views each registered, and
+    writing them out (`write_models_by_size`)."""
+
+    reconstructions: dict[int, pycolmap.Reconstruction]
+
+    @property
+    def largest(self) -> int:
+        """Views registered in the largest model (0 when there is none)."""
+        return max((rec.num_reg_images() for rec in self.reconstructions.values()), default=0)
+
+    def write_by_size(self, folder: Path) -> list[int]:
+        return write_models_by_size(folder, self.reconstructions)
+
+
 def incremental_mapping(
     db_path: Path, image_dir: Path, out_dir: Path, *, seed: int, min_model_size: int,
     abs_pose_min_num_inliers: int, abs_pose_min_inlier_ratio: float, num_threads: int = -1,
     on_next_image: Callable[[], None] | None = None, input_path: Path | None = None,
-) -> dict[int, pycolmap.Reconstruction]:
+) -> MappedModels:
     """COLMAP's incremental mapper; with `input_path` it continues from that model (registers the
     images it lacks, then bundle-adjusts) instead of starting from an empty one."""
     opts = pycolmap.IncrementalPipelineOptions()
@@ -39,15 +56,15 @@ def incremental_mapping(
     opts.mapper.random_seed = seed
     opts.triangulation.random_seed = seed
     with native_errors("map the matches (incremental mapper)", Path(out_dir)):
-        return pycolmap.incremental_mapping(
+        return MappedModels(pycolmap.incremental_mapping(
             str(db_path), str(image_dir), str(out_dir), options=opts,
             input_path=str(input_path) if input_path is not None else "",
             next_image_callback=on_next_image,
-        )
+        ))
 
 
 def global_mapping(db_path: Path, image_dir: Path, out_dir: Path, *, seed: int,
-                   num_threads: int = -1) -> dict[int, pycolmap.Reconstruction]:
+                   num_threads: int = -1) -> MappedModels:
     """COLMAP's global mapper (GLOMAP); the settings this pycolmap lacks are left at its defaults."""
     opts = pycolmap.GlobalPipelineOptions()
     with contextlib.suppress(AttributeError):
@@ -55,7 +72,7 @@ def global_mapping(db_path: Path, image_dir: Path, out_dir: Path, *, seed: int,
     with contextlib.suppress(AttributeError):
         opts.random_seed = seed
     with native_errors("map the matches (global mapper)", Path(out_dir)):
-        return pycolmap.global_mapping(str(db_path), str(image_dir), str(out_dir), options=opts)
+        return MappedModels(pycolmap.global_mapping(str(db_path), str(image_dir), str(out_dir), options=opts))
 
 
 def bundle_adjust(rec: pycolmap.Reconstruction, options: pycolmap.BundleAdjustmentOptions | None = None) -> None:

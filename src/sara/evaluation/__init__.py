@@ -28,9 +28,9 @@ from .metrics import (
 logger = logging.getLogger(__name__)
 
 
-def _structure_metrics(rec: Any) -> dict[str, Any]:
+def _structure_metrics(model: colmap.ModelSummary) -> dict[str, Any]:
     """3D point count, mean track length and reprojection errors of one reconstruction."""
-    num_points, num_observations, errors = colmap.model_structure(rec)
+    num_points, num_observations, errors = model.num_points3d, model.num_observations, model.reprojection_errors_px
     finite = np.isfinite(errors)
     if not np.all(finite):
         logger.warning("%d of %d observations lie behind their camera; left out of the "
@@ -46,12 +46,12 @@ def _structure_metrics(rec: Any) -> dict[str, Any]:
     }
 
 
-def _read_components(model_dirs: Sequence[Path]) -> list[Any]:
+def _read_components(model_dirs: Sequence[Path]) -> list[colmap.ModelSummary]:
     """Read every model folder that exists; missing or empty ones are skipped with a warning."""
     recs = []
     for model_dir in model_dirs:
         try:
-            recs.append(colmap.read_reconstruction(Path(model_dir)))
+            recs.append(colmap.read_summary(Path(model_dir)))
         except FileNotFoundError as error:
             logger.warning("Skipping estimated model: %s", error)
     return recs
@@ -94,21 +94,21 @@ def evaluate_models(model_dirs: list[Path] | Path, gt_dir: Path, *,
         model_dirs = [Path(model_dirs)]
     gt = colmap.load_poses(Path(gt_dir))
     metrics = failure_metrics(len(gt), thresholds_deg)
-    recs = [rec for rec in _read_components(model_dirs) if colmap.num_registered(rec) > 0]
+    recs = [rec for rec in _read_components(model_dirs) if rec.num_registered > 0]
     if not recs:
         if require_model:
             where = ", ".join(str(d) for d in model_dirs) or "the given folder"
             raise FileNotFoundError(f"no readable COLMAP model with registered images in {where}")
         logger.warning("No estimated model with registered images: scored as a failure")
         return metrics
-    names = set().union(*(colmap.poses_of(rec).keys() for rec in recs))
+    names = set().union(*(rec.poses.keys() for rec in recs))
     if not names & gt.keys():
         raise ValueError(f"the model and the ground truth {gt_dir} share no image name (model: e.g. "
                          f"{sorted(names)[0]!r}; ground truth: e.g. {sorted(gt)[0]!r}): is it the ground truth "
                          "of another scene?")
-    largest = max(recs, key=lambda rec: (colmap.num_registered(rec), colmap.model_structure(rec)[0]))
-    est = colmap.poses_of(largest)
-    registered_any = set().union(*(colmap.poses_of(rec).keys() for rec in recs)) & gt.keys()
+    largest = max(recs, key=lambda rec: (rec.num_registered, rec.num_points3d))
+    est = largest.poses
+    registered_any = names & gt.keys()
     num_registered = len(est.keys() & gt.keys())
     metrics.update({
         "num_registered": num_registered,

@@ -132,7 +132,7 @@ def load_run(out_dir: Path) -> RunData:
     models = model.find_models(out_dir / "sparse")
     if models:
         data.model = model.read_model(models[0])
-        data.model_sizes = [len(data.model.names)] + [colmap.num_registered(colmap.read_model(m)) for m in models[1:]]
+        data.model_sizes = [len(data.model.names)] + [len(colmap.registered_images(m)) for m in models[1:]]
     _load_metrics(data)
     data.added = _added_roles(out_dir)
     data.names = sorted(set(data.names) | _names_in(data))
