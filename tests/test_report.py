@@ -324,3 +324,17 @@ def test_the_next_commands_run(sara_run: Path, tmp_path: Path, capsys):
         assert main(argv[1:] + ["--quiet"]) == 0, argv
     assert (out / "colmap" / "sparse" / "0").is_dir() and (out / "report.html").exists()
     assert f"report: {out / 'report.html'}" in capsys.readouterr().out
+
+
+def test_added_pairs_are_named_from_the_ledger_or_the_records_of_sara_0_1(tmp_path: Path) -> None:
+    from sara.io import records
+    from sara.report import _added_roles
+
+    old = tmp_path / "old"
+    records.mark_done(old, "support", "k", {"pairs": [["b", "a"]]})
+    records.mark_done(old, "pose_guided", "k", {"pairs": [["c", "d"]]})
+    assert _added_roles(old) == {("a", "b"): "support", ("c", "d"): "pose-guided"}
+    new = tmp_path / "new"
+    records.mark_done(new, "support", "k", {"pairs": [["a", "b"]]})  # the ledger wins where there is one
+    records.mark_done(new, "rounds", "k", {"added": {"two-apart": [["a", "c"]]}})
+    assert _added_roles(new) == {("a", "c"): "two-apart"}

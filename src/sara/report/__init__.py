@@ -140,10 +140,19 @@ def load_run(out_dir: Path) -> RunData:
     return data
 
 
+#: where runs of sara 0.1 listed the pairs added after the first round (before the rounds' ledger)
+_LEGACY_RECORDS = {"support": "support", "pose-guided": "pose_guided"}
+
+
 def _added_roles(out_dir: Path) -> dict[Pair, str]:
-    """Pairs the rounds' ledger lists as added after the first selection, with their role."""
+    """Pairs the rounds' ledger lists as added after the first selection, with their role (for a
+    run of sara 0.1, the records its rounds kept; pairs they do not list are repairs)."""
     record = records.read_record(out_dir, ROUNDS_STAGE) or {}
-    added = record.get("info", {}).get("added", {}) if record.get("done") is True else {}
+    if record.get("done") is True and "added" in record.get("info", {}):
+        added = record["info"]["added"]
+    else:
+        added = {role: (records.done_info(out_dir, stage) or {}).get("pairs", [])
+                 for role, stage in _LEGACY_RECORDS.items()}
     out: dict[Pair, str] = {}
     for role, pairs in added.items():
         for pair in pairs:
