@@ -16,10 +16,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from sara.config import make_config
 from sara.export import FORMATS
 from sara.io.scores import read_scores_csv, write_scores_csv
-from sara.pipeline import run
 from sara.report import SELECTED_ROLES, load_run, read_scores
 from sara.report.html import ASSETS, asset, render, write_report
 from sara.report.svg import graph_layout, histogram_svg, top_down_frame
@@ -51,10 +49,10 @@ PROBE_TAIL = """<script>window.addEventListener('load', function () {
 
 
 @pytest.fixture(scope="module")
-def sara_run(synthetic_scene, tmp_path_factory) -> Path:
-    images, gt = synthetic_scene
+def sara_run(finished_run_template: Path, tmp_path_factory) -> Path:
+    """The session's finished run, copied once for this module (its tests write pages beside it)."""
     out = tmp_path_factory.mktemp("report") / "out"
-    run(make_config("sift-offline"), images, out, gt_dir=gt, progress=False)
+    shutil.copytree(finished_run_template, out, ignore=shutil.ignore_patterns("*.lock"))
     return out
 
 
