@@ -155,13 +155,6 @@ def commit_staged(run: RoundsRun, staged: Staged) -> None:
         "match_time_s": before.get("match_time_s", 0.0) + staged.match_time_s}})
 
 
-def drop_staged(run: RoundsRun, work: Path) -> None:
-    """The first mapping failed: the staged pairs and their matches go, the previous ones stay."""
-    if work != run.out_dir / extract.DB_NAME:
-        colmap.remove_database(work)
-    run.staged.unlink(missing_ok=True)
-
-
 # ---------------------------------------------------------------------------------------------
 # After mapping
 # ---------------------------------------------------------------------------------------------
