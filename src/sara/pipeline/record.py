@@ -57,7 +57,7 @@ def collect_stages(report: RunReport, selection_key: str) -> None:
     ledger = rounds.ledger(out_dir, selection_key)
     before = ledger.get("before_mapping", {})
     added_before = before.get("num_pairs", 0)
-    added_after = sum(len(p) for role, p in ledger.get("added", {}).items()) - added_before
+    added_after = sum(len(p) for p in ledger.get("added", {}).values()) - added_before
     if added_before or added_after:
         pairs.update(num_added_before_mapping=added_before, num_added_after_mapping=added_after)
         pairs["num_pairs"] = pairs.get("num_selected", pairs.get("num_pairs", 0)) + added_before + added_after
