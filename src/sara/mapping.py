@@ -74,7 +74,7 @@ def run(conf: MapConfig, db_path: Path, images_root: Path, out_dir: Path, *, see
         commit()
     swap_in(tmp, sparse)
     info = {"time_s": elapsed, "num_components": len(sizes), "component_sizes": sizes,
-            "num_registered": sizes[0], "num_images": num_images}
+            "num_registered": sizes[0], "num_images": num_images, "forward_start": recs.forward_start}
     records.mark_done(out_dir, STAGE, key, info, outputs={"sparse": model_digest(sparse)})
     if len(sizes) > 1:
         logger.warning("map: the scene split into %d models of %s images", len(sizes), sizes)
@@ -88,17 +88,28 @@ def _map(conf: MapConfig, db_path: Path, images_root: Path, tmp: Path, seed: int
     colmap.set_seed(seed)
     tic = time.perf_counter()
     if conf.mapper == "incremental":
-        with tqdm(total=num_images, desc="map (incremental)", unit="img", disable=not progress) as bar:
-            recs = colmap.incremental_mapping(
-                db_path, images_root, tmp, seed=seed, min_model_size=conf.min_model_size,
-                abs_pose_min_num_inliers=conf.abs_pose_min_num_inliers,
-                abs_pose_min_inlier_ratio=conf.abs_pose_min_inlier_ratio, num_threads=conf.num_threads,
-                on_next_image=lambda: bar.update(), input_path=input_model)
+        recs = _incremental(conf, db_path, images_root, tmp, seed, progress, num_images, input_model)
+        if recs.largest == 0 and input_model is None:
+            logger.info("map: COLMAP found no pair of views to start from that moved sideways enough; the camera "
+                        "moves along its viewing direction (driving, walking ahead): starting from a forward pair")
+            recs = _incremental(conf, db_path, images_root, tmp, seed, progress, num_images, None,
+                                forward_start=True)
+            recs.forward_start = recs.largest > 0
     elif conf.mapper == "global":
         recs = colmap.global_mapping(db_path, images_root, tmp, seed=seed, num_threads=conf.num_threads)
     else:
         raise ValueError(f"unknown mapper {conf.mapper!r}; choose incremental or global")
     return recs, num_images, time.perf_counter() - tic
+
+
+def _incremental(conf: MapConfig, db_path: Path, images_root: Path, tmp: Path, seed: int, progress: bool,
+                 num_images: int, input_model: Path | None, *, forward_start: bool = False) -> colmap.MappedModels:
+    with tqdm(total=num_images, desc="map (incremental)", unit="img", disable=not progress) as bar:
+        return colmap.incremental_mapping(
+            db_path, images_root, tmp, seed=seed, min_model_size=conf.min_model_size,
+            abs_pose_min_num_inliers=conf.abs_pose_min_num_inliers,
+            abs_pose_min_inlier_ratio=conf.abs_pose_min_inlier_ratio, num_threads=conf.num_threads,
+            on_next_image=lambda: bar.update(), input_path=input_model, forward_start=forward_start)
 
 
 def _extend(conf: MapConfig, db_path: Path, images_root: Path, tmp: Path, seed: int, progress: bool,
@@ -152,7 +163,8 @@ def no_model_reason(db_path: Path, conf: MapConfig, min_num_inliers: int) -> str
     if conf.mapper == "incremental":
         return (f"the mapper found no pair of views to start from among the {linked} (the best has {most_inliers} "
                 f"inlier matches): COLMAP's mapper also needs {need_angle:g} degrees of triangulation angle between "
-                "them, and these views are too close together, turn on the spot, or see a flat scene")
+                "them (a start from views that moved forward was tried too), and these views are too close together, "
+                "turn on the spot, or see a flat scene")
     return f"the global mapper found no model among the {linked}"
 
 

@@ -27,7 +27,8 @@ EXIT_TERMINATED = 128 + signal.SIGTERM  # 143
 #: the flag that sets each option, to name it in an error about its value
 FLAGS = {"seed": "--seed", "execute.workers": "--workers", "execute.executor": "--executor",
          "execute.ray_address": "--ray-address", "map.mapper": "--mapper", "extract.camera_mode": "--camera-mode",
-         "images.recursive": "--recursive", "pairs.method": "--pairs"}
+         "images.recursive": "--recursive", "pairs.method": "--pairs",
+         "sequence.mode": "--sequence"}
 
 #: termination signals received by this command (the error that follows one is reported as it)
 RECEIVED_SIGNALS: list[int] = []

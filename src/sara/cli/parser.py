@@ -124,6 +124,12 @@ class _ExportHelpFormatter(argparse.HelpFormatter):
 # ---------------------------------------------------------------------------------------------
 
 
+def _add_sequence(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--sequence", choices=["auto", "yes", "no"], default=None,
+                   help="the images are frames in capture order, numbered by their names (video, drive): auto "
+                        "(default) when their looks agree with the names' order")
+
+
 def _add_run(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("run", help="images -> pairs -> matches -> COLMAP model (sparse/0) in one go")
     p.add_argument("images", type=Path, help="folder of images")
@@ -131,6 +137,7 @@ def _add_run(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--pairs", default=None,
                    help=f"pair source: one of {_pair_source_names()} (default sara), or a pairs file")
     p.add_argument("--mapper", choices=["incremental", "global"], help="COLMAP mapper (default incremental)")
+    _add_sequence(p)
     p.add_argument("--gt", type=Path, help="ground-truth model folder: evaluate the result against it")
     p.add_argument("--export", choices=_export_format_names(),
                    help="also export the model into OUT/<format> (see `sara export`)")
@@ -153,6 +160,7 @@ def _add_pairs(sub: argparse._SubParsersAction) -> None:
     p.add_argument("images", type=Path)
     p.add_argument("out", type=Path)
     p.add_argument("--method", default=None, help=f"one of {_pair_source_names()} (default sara)")
+    _add_sequence(p)
     _add_config_options(p)
     _add_output_options(p)
     p.set_defaults(handler=commands.cmd_pairs)

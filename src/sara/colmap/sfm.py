@@ -30,6 +30,7 @@ class MappedModels:
     writing them out (`write_models_by_size`)."""
 
     reconstructions: dict[int, pycolmap.Reconstruction]
+    forward_start: bool = False  # the mapper started from a pair that moved along the viewing direction
 
     @property
     def largest(self) -> int:
@@ -44,10 +45,18 @@ def incremental_mapping(
     db_path: Path, image_dir: Path, out_dir: Path, *, seed: int, min_model_size: int,
     abs_pose_min_num_inliers: int, abs_pose_min_inlier_ratio: float, num_threads: int = -1,
     on_next_image: Callable[[], None] | None = None, input_path: Path | None = None,
+    forward_start: bool = False,
 ) -> MappedModels:
     """COLMAP's incremental mapper; with `input_path` it continues from that model (registers the
-    images it lacks, then bundle-adjusts) instead of starting from an empty one."""
+    images it lacks, then bundle-adjusts) instead of starting from an empty one.
+
+    `forward_start` lets the mapper start from a pair of views that moved along the viewing
+    direction: COLMAP refuses such a start (`init_max_forward_motion`, 0.95 of the baseline along
+    the optical axis), so a camera driving or walking straight ahead never starts a model.
+    """
     opts = pycolmap.IncrementalPipelineOptions()
+    if forward_start:
+        opts.mapper.init_max_forward_motion = 1.0
     opts.min_model_size = min_model_size
     opts.num_threads = num_threads
     opts.mapper.abs_pose_min_num_inliers = abs_pose_min_num_inliers

@@ -14,7 +14,7 @@ from .layout import RENAMED, RULES, SECTIONS, PipelineConfig
 from .overrides import apply_overrides, config_from_dict, make_config, parse_override_args, renamed_keys
 from .presets import PRESETS
 from .rules import CAMERA_MODELS, MAX_SEED, ConfigError, validate
-from .sara_sections import BudgetConfig, GraphConfig, RoundsConfig, ScoreConfig
+from .sara_sections import BudgetConfig, GraphConfig, RoundsConfig, ScoreConfig, SequenceConfig
 from .sections import (
     ExecuteConfig,
     ExtractConfig,
@@ -30,7 +30,7 @@ from .sections import (
 __all__ = [
     "CAMERA_MODELS", "MAX_SEED", "PRESETS", "RENAMED", "RULES", "SECTIONS", "BudgetConfig", "ConfigError",
     "ExecuteConfig", "ExtractConfig", "GraphConfig", "ImagesConfig", "MapConfig", "MatchConfig", "PairsConfig",
-    "PipelineConfig", "RetrievalConfig", "RoundsConfig", "ScoreConfig", "SequentialConfig", "VocabTreeConfig",
+    "PipelineConfig", "RetrievalConfig", "RoundsConfig", "ScoreConfig", "SequenceConfig", "SequentialConfig", "VocabTreeConfig",
     "apply_overrides", "config_from_dict", "describe_markdown", "everyday_keys", "make_config",
     "parse_override_args", "renamed_keys", "validate",
 ]

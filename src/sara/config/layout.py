@@ -7,7 +7,7 @@ from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
 from .rules import MAX_SEED, Rule, ints, option, validate
-from .sara_sections import BudgetConfig, GraphConfig, RoundsConfig, ScoreConfig
+from .sara_sections import BudgetConfig, GraphConfig, RoundsConfig, ScoreConfig, SequenceConfig
 from .sections import (
     ExecuteConfig,
     ExtractConfig,
@@ -31,6 +31,7 @@ class PipelineConfig:
     sequential: SequentialConfig = field(default_factory=SequentialConfig)
     vocab_tree: VocabTreeConfig = field(default_factory=VocabTreeConfig)
     retrieval: RetrievalConfig = field(default_factory=RetrievalConfig)
+    sequence: SequenceConfig = field(default_factory=SequenceConfig)
     score: ScoreConfig = field(default_factory=ScoreConfig)
     graph: GraphConfig = field(default_factory=GraphConfig)
     budget: BudgetConfig = field(default_factory=BudgetConfig)

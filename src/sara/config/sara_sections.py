@@ -53,6 +53,25 @@ class ScoreConfig:
 
 
 @dataclass(frozen=True, kw_only=True)
+class SequenceConfig:
+    """Ordered captures (video frames, bursts): candidates from a window of neighbouring frames too."""
+
+    SECTION: ClassVar[str] = "sequence"
+
+    mode: str = option("auto", choice("auto", "yes", "no"), """auto: the images are frames of a sequence when
+        their names number them (frame_000123.png, IMG_0042.JPG) and their global descriptors agree (most
+        nearest neighbours are neighbouring frames); yes: whenever the names number them; no: never.""",
+                       advanced=False)
+    window: int = option(5, ints(1), """In a sequence, each frame is also a candidate pair with this many
+        following frames, besides its retrieval neighbours (which close the loops).""")
+    min_agreement: float = option(0.5, reals(0, 1), """auto: the share of the images' nearest global
+        descriptors that must be neighbouring frames (within `window`) for the names' order to count.""")
+
+    def __post_init__(self) -> None:
+        validate(self)
+
+
+@dataclass(frozen=True, kw_only=True)
 class GraphConfig:
     """Budgets and thresholds of the pair-graph stage.
 

@@ -16,7 +16,7 @@ from .source import select
 
 def _sections(conf: PipelineConfig) -> tuple[str, ...]:
     """The selection depends on the scorer, the graph and the budget it shares with the rounds."""
-    return ("pairs", "retrieval", "score", "graph", "budget", "rounds")
+    return ("pairs", "retrieval", "sequence", "score", "graph", "budget", "rounds")
 
 
 SOURCE = PairSource(select=select, sections=_sections, caches=("global-*.h5",), rounds=SaraRounds())

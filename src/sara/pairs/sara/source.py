@@ -24,6 +24,7 @@ from ...io.pairs import Pair
 from ...io.scores import concat_scores, write_scores_csv
 from .. import PairContext, PairResult
 from .budget import PairBudget
+from . import sequence
 from .field_of_view import resolve_tree_overlap
 
 logger = logging.getLogger(__name__)
@@ -37,6 +38,8 @@ def select(ctx: PairContext) -> PairResult:
     timings: dict[str, float] = {}
     tic = time.perf_counter()
     names, edges, desc = _candidates(ctx)
+    sequences = sequence.detect(names, desc, conf.sequence)
+    edges, num_window = _with_window(edges, sequences, conf.sequence.window)
     timings["retrieval"] = time.perf_counter() - tic
 
     tic = time.perf_counter()
@@ -82,6 +85,7 @@ def select(ctx: PairContext) -> PairResult:
         "field_of_view_deg": field_of_view,
         "graph": chosen_graph.stats(),
         "selected_components": _component_sizes(labels),
+        "sequence": sequences.summary(conf.sequence.mode, num_window),
     }
     sizes = info["selected_components"]
     if len(sizes) > 1:
@@ -172,6 +176,24 @@ def _candidates(ctx: PairContext) -> tuple[list[str], np.ndarray, np.ndarray | N
                                 images_root=ctx.images_root, progress=ctx.progress, seed=conf.seed)
     names, desc = retrieval.read_global(global_path)
     return names, retrieval.knn_pairs(desc, conf.retrieval.num_neighbors).astype(np.int64), desc
+
+
+def _with_window(edges: np.ndarray, sequences: sequence.Sequences, window: int) -> tuple[np.ndarray, int]:
+    """The candidates and, in a sequence, each frame's `window` following frames (appended, kNN
+    pairs first); returns them and how many the window added."""
+    if not sequences.used:
+        if sequences.orders:
+            logger.info("sequence: the names number %d frames, but only %.0f%% of the images' nearest global "
+                        "descriptors are neighbouring frames: not used as an order (--sequence yes uses it)",
+                        sum(map(len, sequences.orders)), 100 * (sequences.agreement or 0.0))
+        return edges, 0
+    known = {(int(a), int(b)) for a, b in edges}
+    extra = np.array([p for p in sequence.window_pairs(sequences.orders, window).tolist() if tuple(p) not in known],
+                     dtype=np.int64).reshape(-1, 2)
+    if len(extra):
+        logger.info("sequence: %d frames in %d sequence(s); %d candidate pairs of neighbouring frames added to "
+                    "the retrieval neighbours", sum(map(len, sequences.orders)), len(sequences.orders), len(extra))
+    return np.concatenate([edges.reshape(-1, 2), extra]), len(extra)
 
 
 def rescue_low_parallax(num_images: int, edges: np.ndarray, roles: list[str], scores: scoring.PairScores) -> int:

@@ -1,0 +1,111 @@
+"""Ordered captures: frames of a video, a burst or a drive, recognised by their names and confirmed
+by what they look like.
+
+A name numbers a frame when it ends in digits before its extension (`frame_000123.png`,
+`IMG_0042.JPG`, `cam0/000051.png`); the names sharing everything but that number (folder, prefix,
+extension) form one sequence, ordered by the number. A phone's photo names number every capture
+too, so in `auto` mode the order counts only when the images' looks agree with it: most of each
+image's nearest global descriptors must be frames within `window` places of it, which a shuffled
+collection reaches by chance with probability about 2 window / N per neighbour.
+
+In a sequence, each frame is also a candidate pair with the `window` frames that follow it; the
+retrieval neighbours stay candidates too and close the loops. The candidates are scored and the
+pairs chosen as for any capture.
+"""
+
+from __future__ import annotations
+
+import re
+from collections import defaultdict
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from ...config import SequenceConfig
+from ...descriptors import top_k_cosine
+
+#: (anything)(the last run of digits)(no digit up to the end): the frame number of a name
+FRAME_NUMBER = re.compile(r"^(?P<prefix>.*?)(?P<number>\d+)(?P<suffix>\D*)$")
+#: fewest frames of a sequence; shorter runs of numbered names are not an order worth using
+MIN_FRAMES = 3
+#: share of the names a set of sequences must cover to order the capture
+MIN_COVERED = 0.9
+#: nearest global descriptors per image that test the order in `auto` mode
+AGREEMENT_NEIGHBOURS = 4
+
+
+@dataclass
+class Sequences:
+    """The frame orders found among the names.
+
+    orders: one list of indices into the names per sequence, in capture order (empty: no order).
+    agreement: share of the nearest global descriptors that are neighbouring frames (None: not tested).
+    used: whether the order feeds the candidates (mode yes, or auto and the looks agree).
+    """
+
+    orders: list[list[int]] = field(default_factory=list)
+    agreement: float | None = None
+    used: bool = False
+
+    def summary(self, mode: str, num_window: int) -> dict[str, Any]:
+        return {"mode": mode, "used": self.used, "num_sequences": len(self.orders),
+                "num_frames": sum(map(len, self.orders)),
+                "agreement": None if self.agreement is None else round(self.agreement, 4),
+                "num_window_candidates": num_window}
+
+
+def frame_orders(names: list[str]) -> list[list[int]]:
+    """Sequences of frames among `names` (indices, in frame-number order), or [] when numbered
+    names cover less than MIN_COVERED of them."""
+    groups: dict[tuple[str, str], list[tuple[int, int]]] = defaultdict(list)
+    for i, name in enumerate(names):
+        stem, dot, ext = name.rpartition(".")
+        match = FRAME_NUMBER.match(stem if dot else name)
+        if match:
+            key = (match["prefix"], match["suffix"] + (dot + ext.lower() if dot else ""))
+            groups[key].append((int(match["number"]), i))
+    orders = [[i for _, i in sorted(group)] for _, group in sorted(groups.items()) if len(group) >= MIN_FRAMES]
+    covered = sum(map(len, orders))
+    return orders if names and covered >= MIN_COVERED * len(names) else []
+
+
+def agreement(orders: list[list[int]], desc: np.ndarray, window: int) -> float:
+    """Share of each frame's AGREEMENT_NEIGHBOURS nearest global descriptors (rows of `desc`, one per
+    name) that lie in its sequence within `window` frames of it."""
+    place = {i: (s, p) for s, order in enumerate(orders) for p, i in enumerate(order)}
+    rows = np.array([i for order in orders for i in order], dtype=np.int64)
+    k = min(AGREEMENT_NEIGHBOURS, len(desc) - 1)
+    if k < 1 or len(rows) == 0:
+        return 0.0
+    near = total = 0
+    for i, found in zip(rows, top_k_cosine(desc, k, rows)):
+        seq, pos = place[int(i)]
+        for j in found:
+            other = place.get(int(j))
+            near += other is not None and other[0] == seq and abs(other[1] - pos) <= window
+            total += 1
+    return near / total if total else 0.0
+
+
+def detect(names: list[str], desc: np.ndarray | None, conf: SequenceConfig) -> Sequences:
+    """The sequences of a capture under `conf.mode` (see the module docstring)."""
+    if conf.mode == "no":
+        return Sequences()
+    orders = frame_orders(names)
+    if conf.mode == "yes":
+        if not orders:
+            raise ValueError("sequence.mode is yes (--sequence yes), but the image names do not number frames: "
+                             "name them in capture order with a frame number (frame_000001.png, ...)")
+        return Sequences(orders, used=True)
+    if not orders or desc is None:
+        return Sequences(orders)
+    share = agreement(orders, desc, conf.window)
+    return Sequences(orders, share, used=share >= conf.min_agreement)
+
+
+def window_pairs(orders: list[list[int]], window: int) -> np.ndarray:
+    """(E, 2) int64 pairs i < j: each frame with the `window` frames after it in its sequence."""
+    pairs = [(min(a, b), max(a, b)) for order in orders for p, a in enumerate(order)
+             for b in order[p + 1:p + 1 + window]]
+    return np.array(sorted(set(pairs)), dtype=np.int64).reshape(-1, 2)
