@@ -30,7 +30,8 @@ from .sections import (
 __all__ = [
     "CAMERA_MODELS", "MAX_SEED", "PRESETS", "RENAMED", "RULES", "SECTIONS", "BudgetConfig", "ConfigError",
     "ExecuteConfig", "ExtractConfig", "GraphConfig", "ImagesConfig", "MapConfig", "MatchConfig", "PairsConfig",
-    "PipelineConfig", "RetrievalConfig", "RoundsConfig", "ScoreConfig", "SequenceConfig", "SequentialConfig", "VocabTreeConfig",
+    "PipelineConfig", "RetrievalConfig", "RoundsConfig", "ScoreConfig", "SequenceConfig", "SequentialConfig",
+    "VocabTreeConfig",
     "apply_overrides", "config_from_dict", "describe_markdown", "everyday_keys", "make_config",
     "parse_override_args", "renamed_keys", "validate",
 ]

@@ -23,8 +23,8 @@ from ...descriptors import top_k_cosine
 from ...io.pairs import Pair
 from ...io.scores import concat_scores, write_scores_csv
 from .. import PairContext, PairResult
-from .budget import PairBudget
 from . import sequence
+from .budget import PairBudget
 from .field_of_view import resolve_tree_overlap
 
 logger = logging.getLogger(__name__)

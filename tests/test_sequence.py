@@ -1,0 +1,95 @@
+"""Ordered captures: frame orders from names, the descriptors' agreement, the window candidates,
+and the mapper's start from views that moved forward."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from sara.config import SequenceConfig, make_config
+from sara.pairs.sara import sequence
+
+
+def _names(n: int, pattern: str = "frame_{:06d}.png") -> list[str]:
+    return [pattern.format(i) for i in range(n)]
+
+
+def test_numbered_names_give_one_order_by_number_not_by_text():
+    names = ["f10.png", "f9.png", "f100.png", "f8.png"]
+    assert sequence.frame_orders(names) == [[3, 1, 0, 2]]
+
+
+def test_two_videos_are_two_sequences_and_other_names_no_order():
+    names = _names(4, "a_{:03d}.jpg") + _names(5, "b/{:04d}.JPG")
+    orders = sequence.frame_orders(names)
+    assert sorted(map(len, orders)) == [4, 5]
+    assert sequence.frame_orders(["castle.png", "tower.png", "gate.png", "frame_1.png"]) == []
+
+
+def test_a_few_unnumbered_names_among_many_frames_keep_the_order():
+    names = _names(30) + ["cover.png"]
+    assert len(sequence.frame_orders(names)) == 1
+    assert sequence.frame_orders(_names(5) + ["a.png", "b.png"]) == []  # 5/7 < MIN_COVERED
+
+
+def _walk_descriptors(n: int, seed: int = 0) -> np.ndarray:
+    """Descriptors of a camera walking on: each frame close to its neighbours."""
+    rng = np.random.default_rng(seed)
+    return np.cumsum(rng.normal(size=(n, 64)), axis=0)
+
+
+def test_auto_uses_the_order_only_when_the_looks_agree():
+    names, desc = _names(40), _walk_descriptors(40)
+    conf = SequenceConfig()
+    found = sequence.detect(names, desc, conf)
+    assert found.used and found.agreement > 0.9
+    shuffled = np.random.default_rng(1).permutation(40)
+    unrelated = sequence.detect(names, desc[shuffled], conf)  # numbered like a phone, shot anywhere
+    assert not unrelated.used and unrelated.agreement < conf.min_agreement
+    assert sequence.detect(names, desc[shuffled], SequenceConfig(mode="yes")).used
+    assert not sequence.detect(names, desc, SequenceConfig(mode="no")).used
+
+
+def test_yes_without_numbered_names_is_a_clear_error():
+    with pytest.raises(ValueError, match="do not number frames"):
+        sequence.detect(["a.png", "b.png", "c.png"], None, SequenceConfig(mode="yes"))
+
+
+def test_window_pairs_follow_each_sequence_not_across():
+    orders = [[0, 1, 2, 3], [4, 5, 6]]
+    pairs = sequence.window_pairs(orders, 2).tolist()
+    assert pairs == [[0, 1], [0, 2], [1, 2], [1, 3], [2, 3], [4, 5], [4, 6], [5, 6]]
+
+
+def test_sequence_mode_is_a_config_key_and_a_flag():
+    assert make_config("sift-offline", {"sequence.mode": "no"}).sequence.mode == "no"
+    from sara.cli.parser import build_parser
+
+    args = build_parser().parse_args(["run", "IMAGES", "OUT", "--sequence", "yes"])
+    from sara.cli.commands import config_from_args
+
+    assert config_from_args(args).sequence.mode == "yes"
+
+
+def test_the_mapper_starts_from_forward_motion_when_nothing_else_starts(monkeypatch, tmp_path: Path):
+    """COLMAP refuses to start from views that moved along the optical axis; a forward drive has
+    no other pair, so the map stage asks again with that refusal lifted, and says so."""
+    from sara import colmap, mapping
+    from sara.colmap.sfm import MappedModels
+
+    calls: list[bool] = []
+
+    class Rec:
+        def num_reg_images(self) -> int:
+            return 7
+
+    def fake_mapping(*args, forward_start=False, **kwargs):
+        calls.append(forward_start)
+        return MappedModels({0: Rec()} if forward_start else {})
+
+    monkeypatch.setattr(colmap, "incremental_mapping", fake_mapping)
+    monkeypatch.setattr(colmap, "database_images", lambda db: {})
+    recs, _, _ = mapping._map(make_config("sift-offline", {}).map, tmp_path / "db", tmp_path, tmp_path, 0, False)
+    assert calls == [False, True] and recs.forward_start and recs.largest == 7
