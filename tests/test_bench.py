@@ -224,3 +224,47 @@ def test_renaming_leaves_hidden_files_out_and_keeps_true_images_that_are_missing
     assert sorted(mapping) == rest and len(list((renamed / "images").iterdir())) == len(rest)
     names = read_model(renamed / "gt").names
     assert first in names and sorted(set(names) - {first}) == sorted(mapping.values())
+
+
+def _kind_row(scene, method, auc1, auc5, pairs=10, after=5.0):
+    return {"scene": scene, "method": method, "auc@1": auc1, "auc@5": auc5, "pairs": pairs, "num_registered": 9,
+            "num_components": 1, "after_extract_s": after, "end_to_end_s": after + 2}
+
+
+def test_kind_summary_reads_sara_against_each_method_with_exhaustives_band():
+    rows = [_kind_row("s", "exhaustive", 0.50, 0.90), _kind_row("s~names1", "exhaustive", 0.48, 0.90),
+            _kind_row("s", "sara", 0.51, 0.91), _kind_row("s~names1", "sara", 0.49, 0.89),
+            _kind_row("s", "retrieval", 0.40, 0.85), _kind_row("s", "sequential-loop", 0.60, 0.95)]
+    entries = {e["method"]: e for e in bench.kind_summary(rows, {"s": "driving"})}
+    assert entries["sara"]["band"] == pytest.approx({"auc@1": 0.04, "auc@5": 0.0})
+    assert entries["exhaustive"]["sara_verdict"] == "within band"  # @1 +0.01 < 0.04, @5 equal
+    assert entries["retrieval"]["sara_verdict"] == "better"
+    assert entries["sequential-loop"]["sara_verdict"] == "worse"
+    assert entries["sara"]["kind"] == "driving" and entries["sara"]["sara_verdict"] == ""
+    text = bench.render_kinds(list(entries.values()))
+    assert "## driving" in text and "0.500 (0.490-0.510)" in text
+
+
+def test_kind_summary_without_namings_has_no_band():
+    rows = [_kind_row("s", "exhaustive", 0.5, 0.9), _kind_row("s", "sara", 0.9, 0.99)]
+    (sara_row,) = [e for e in bench.kind_summary(rows, {}) if e["method"] == "exhaustive"]
+    assert sara_row["sara_verdict"] == "no band" and sara_row["kind"] == "unspecified"
+
+
+def test_kinds_are_parsed_and_bad_ones_refused():
+    assert bench.parse_kinds(["kitti-seq1=driving", " a = b "]) == {"kitti-seq1": "driving", "a": "b"}
+    with pytest.raises(ValueError, match="SCENE=KIND"):
+        bench.parse_kinds(["kitti-seq1"])
+
+
+def test_sequential_with_loop_detection_is_a_bench_method(bench_run, tmp_path: Path):
+    scene, _, conf, _ = bench_run
+    assert bench.parse_methods("sequential-loop,sara") == ["sequential-loop", "sara"]
+    result = bench.run_bench([scene], tmp_path / "b", conf, methods=["sequential-loop"], progress=False, plot=False,
+                             kinds={scene.name: "orbit"})
+    (row,) = result.rows
+    assert row["method"] == "sequential-loop" and not row.get("error")
+    pairs = json.loads((tmp_path / "b" / scene.name / "sequential-loop" / "run.json").read_text())["stages"]["pairs"]
+    assert pairs["num_loop_pairs_added"] > 0
+    assert row["end_to_end_s"] >= row["after_extract_s"] > 0
+    assert "## orbit" in (tmp_path / "b" / "kinds.md").read_text()

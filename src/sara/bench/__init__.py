@@ -3,6 +3,7 @@ tables and plot of the results (`tables.py`), scenes under random file names (`n
 synthetic street worlds of any size with true poses, to measure pair selection at scale (`world/`,
 imported on its own as `sara.bench.world`)."""
 
+from .kinds import kind_summary, parse_kinds, render_kinds
 from .names import renamed_scene
 from .run import (
     ABLATION_VARIANTS,
@@ -26,5 +27,5 @@ from .tables import (
 __all__ = [
     "ABLATION_COLUMNS", "ABLATION_NOTE", "ABLATION_TITLE", "ABLATION_VARIANTS", "DEFAULT_METHODS", "TABLE_COLUMNS",
     "TABLE_TITLE", "BenchResult", "names_summary", "parse_methods", "render_markdown", "render_names",
-    "renamed_scene", "run_bench", "run_method",
+    "kind_summary", "parse_kinds", "render_kinds", "renamed_scene", "run_bench", "run_method",
 ]

@@ -28,7 +28,8 @@ from typing import Any
 from .. import extract, pipeline
 from ..config import PipelineConfig, apply_overrides
 from ..io import OutputLock, fingerprint, records, write_json_atomic, write_text_atomic
-from .names import renamed_scene
+from .kinds import kind_summary, render_kinds
+from .names import base_scene, renamed_scene
 from .tables import (
     ABLATION_COLUMNS,
     ABLATION_NOTE,
@@ -44,7 +45,13 @@ from .tables import (
 
 logger = logging.getLogger(__name__)
 
-DEFAULT_METHODS = ("exhaustive", "sequential", "vocabtree", "retrieval", "sara")
+DEFAULT_METHODS = ("exhaustive", "sequential", "sequential-loop", "vocabtree", "retrieval", "sara")
+#: bench methods that are a pair source with settings: name -> (pairs.method, overrides)
+METHOD_SETTINGS: dict[str, tuple[str, dict[str, Any]]] = {
+    "sequential-loop": ("sequential", {"sequential.loop_detection": True}),
+}
+#: methods that pair images by their name order: meaningless under random names (`--name-orders`)
+ORDERED_METHODS = ("sequential", "sequential-loop")
 BENCH_STAGE = "bench"
 FEATURES_DIR = "features"
 # SARA's graph stage with parts switched off (GraphConfig.use_*); "full" is the plain `sara` method.
@@ -79,9 +86,10 @@ def parse_methods(text: str | Sequence[str]) -> list[str]:
     names = list(dict.fromkeys(m for m in names if m))
     if not names:
         raise ValueError(f"no methods given; choose among {', '.join(SOURCES)}")
-    unknown = [m for m in names if m not in SOURCES]
+    known = [*SOURCES, *METHOD_SETTINGS]
+    unknown = [m for m in names if m not in known]
     if unknown:
-        raise ValueError(f"unknown method {unknown[0]!r} in --methods; choose among {', '.join(SOURCES)}")
+        raise ValueError(f"unknown method {unknown[0]!r} in --methods; choose among {', '.join(known)}")
     return names
 
 
@@ -196,6 +204,15 @@ def _ratio(value: Any, reference: Any) -> float | None:
     return float(value) / float(reference)
 
 
+def _end_to_end(row: dict[str, Any], extract_s: float) -> dict[str, Any]:
+    """Seconds after extraction (selection, matching, mapping, the rounds included) and end to end
+    (with the extraction every method shares, timed once)."""
+    if row.get("error") or row.get("match_s") is None:
+        return {}
+    after = sum(float(row.get(k) or 0.0) for k in ("select_s", "tree_build_s", "match_s", "map_s"))
+    return {"extract_s": extract_s, "after_extract_s": after, "end_to_end_s": extract_s + after}
+
+
 def bench_scene(conf: PipelineConfig, scene: Path, out_dir: Path, methods: Sequence[str], *,
                 ablation: bool = False, progress: bool = True) -> tuple[list[dict], list[dict]]:
     """All methods (and ablation variants) on one scene; returns (method rows, ablation rows)."""
@@ -204,12 +221,18 @@ def bench_scene(conf: PipelineConfig, scene: Path, out_dir: Path, methods: Seque
     features_dir = scene_dir / FEATURES_DIR
     logger.info("bench %s: extracting features once for all methods", scene.name)
     pipeline.run(conf, images, features_dir, progress=progress, stop_after="extract")
+    extract_s = float((records.done_info(features_dir, extract.STAGE) or {}).get("time_s") or 0.0)
     rows = []
     for i, method in enumerate(methods, 1):
+        if method in ORDERED_METHODS and base_scene(scene.name) != scene.name:
+            logger.info("bench %s: %s skipped: it pairs by name order, which random names do not keep",
+                        scene.name, method)
+            continue
         logger.info("bench %s: method %s (%d/%d)", scene.name, method, i, len(methods))
-        method_conf = apply_overrides(conf, {"pairs.method": method})
+        source, settings = METHOD_SETTINGS.get(method, (method, {}))
+        method_conf = apply_overrides(conf, {"pairs.method": source, **settings})
         row = _run_guarded(method_conf, images, gt, features_dir, scene_dir / method, progress)
-        rows.append({"scene": scene.name, "method": method, **row})
+        rows.append({"scene": scene.name, "method": method, **row, **_end_to_end(row, extract_s)})
     ablation_rows = []
     if ablation:
         for i, (variant, overrides) in enumerate(ABLATION_VARIANTS.items(), 1):
@@ -223,12 +246,13 @@ def bench_scene(conf: PipelineConfig, scene: Path, out_dir: Path, methods: Seque
 
 def run_bench(scenes: Sequence[Path], out_dir: Path, conf: PipelineConfig, *,
               methods: Sequence[str] = DEFAULT_METHODS, ablation: bool = False, progress: bool = True,
-              plot: bool = True, name_orders: int = 0) -> BenchResult:
+              plot: bool = True, name_orders: int = 0, kinds: dict[str, str] | None = None) -> BenchResult:
     """Benchmark `methods` on every scene into `out_dir`; writes and returns the results.
 
     With `name_orders` K > 0 each scene also runs under K random namings of its images
     (`names.renamed_scene`, kept in ``out_dir/renamed``), each a scene of its own, and
-    ``out_dir/names.md`` sums each method up over the namings."""
+    ``out_dir/names.md`` sums each method up over the namings. ``out_dir/kinds.md`` sets SARA against
+    each method per scene, the scenes grouped by `kinds` (scene folder name -> kind of capture)."""
     methods = parse_methods(list(methods))
     scenes = [Path(s) for s in scenes]
     if name_orders < 0:
@@ -242,7 +266,7 @@ def run_bench(scenes: Sequence[Path], out_dir: Path, conf: PipelineConfig, *,
     out_dir.mkdir(parents=True, exist_ok=True)
     result = BenchResult()
     meta = {"scenes": [str(s) for s in scenes], "methods": list(methods), "config": conf.to_dict(),
-            "versions": pipeline.versions(), "name_orders": int(name_orders)}
+            "versions": pipeline.versions(), "name_orders": int(name_orders), "kinds": dict(kinds or {})}
     with OutputLock(out_dir):
         if name_orders:
             scenes = [s for scene in scenes for s in
@@ -271,6 +295,10 @@ def write_results(out_dir: Path, result: BenchResult, meta: dict[str, Any], *, a
         write_json_atomic(out_dir / "names.json", {**meta, "summary": summary})
         write_text_atomic(out_dir / "names.md", render_names(summary))
         files += [out_dir / "names.json", out_dir / "names.md"]
+    by_kind = kind_summary(result.rows, meta.get("kinds") or {})
+    write_json_atomic(out_dir / "kinds.json", {**meta, "summary": by_kind})
+    write_text_atomic(out_dir / "kinds.md", render_kinds(by_kind))
+    files += [out_dir / "kinds.json", out_dir / "kinds.md"]
     png = plot_results(result.rows, out_dir / "bench.png") if plot else None
     return files + ([png] if png is not None else [])
 

@@ -125,7 +125,7 @@ def cmd_bench(args: argparse.Namespace) -> None:
     conf = make_config(args.preset, overrides)
     result = bench.run_bench(args.scenes, args.out, conf, methods=bench.parse_methods(args.methods),
                              ablation=args.ablation, progress=not args.quiet, plot=not args.no_plot,
-                             name_orders=args.name_orders)
+                             name_orders=args.name_orders, kinds=bench.parse_kinds(args.kind))
     print(bench.render_markdown(result.rows, bench.TABLE_COLUMNS, bench.TABLE_TITLE))
     if args.ablation:
         print(bench.render_markdown(result.ablation_rows, bench.ABLATION_COLUMNS, bench.ABLATION_TITLE,

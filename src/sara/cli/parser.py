@@ -246,6 +246,9 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:
     _add_preset_and_overrides(p, PRESETS, every_method=True)
     p.add_argument("--workers", type=int, help="parallel workers (default 0: one per CPU core); results do not change")
     p.add_argument("--no-plot", action="store_true", help="skip bench.png")
+    p.add_argument("--kind", action="append", default=[], metavar="SCENE=KIND",
+                   help="the kind of capture of a scene (driving, object, facade, ...): kinds.md groups the "
+                        "scenes by it (repeatable)")
     p.add_argument("--name-orders", type=int, default=0, metavar="K",
                    help="also run each scene under K random namings of its images (names.md: the spread "
                         "that file names alone cause)")
