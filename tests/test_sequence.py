@@ -93,3 +93,26 @@ def test_the_mapper_starts_from_forward_motion_when_nothing_else_starts(monkeypa
     monkeypatch.setattr(colmap, "database_images", lambda db: {})
     recs, _, _ = mapping._map(make_config("sift-offline", {}).map, tmp_path / "db", tmp_path, tmp_path, 0, False)
     assert calls == [False, True] and recs.forward_start and recs.largest == 7
+
+
+def test_low_texture_is_said_before_matching_with_the_backend_to_try():
+    from sara.pipeline import advice
+
+    text = advice.low_texture({"num_images": 48, "keypoints_mean": 251.0}, "sift")
+    assert "251 keypoints per image" in text and "--preset aliked-lightglue" in text
+    assert advice.low_texture({"num_images": 48, "keypoints_mean": 4000.0}, "sift") == ""
+    assert advice.low_texture({"num_images": 48, "keypoints_mean": 251.0}, "aliked") == ""
+
+
+def test_a_run_with_starved_sift_records_and_prints_the_advice(synthetic_scene, tmp_path: Path):
+    """A real run, cut to 200 SIFT features per image: the warning reaches the console and run.json."""
+    import json
+
+    from harness import run_redirected
+
+    images, _ = synthetic_scene
+    out = tmp_path / "out"
+    result = run_redirected("pairs", images, out, "-s", "extract.max_num_features=200", "-q", "--method", "exhaustive")
+    assert result.code == 0, result.err
+    assert "keypoints per image on average" in result.err
+    assert json.loads((out / "run.json").read_text())["stages"]["extract"]["low_texture"] is True

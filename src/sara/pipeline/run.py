@@ -21,7 +21,7 @@ from ..matchers import BACKENDS as MATCHER_BACKENDS
 from ..matchers import resolve_name
 from ..pairs import get_source
 from ..retrieval import DESCRIPTORS
-from . import pairs_stage, rounds
+from . import advice, pairs_stage, rounds
 from .record import RunReport, collect_stages, render_report
 
 logger = logging.getLogger(__name__)
@@ -72,6 +72,8 @@ def _run_stages(conf: PipelineConfig, images: ImageSet, images_root: Path, out_d
     report = RunReport(out_dir, images_root, conf.to_dict(), skipped_images=images.skipped)
     report.stages["images"] = {"num_images": len(images.names), "num_skipped": len(images.skipped)}
     report.stages["extract"] = records.done_info(out_dir, extract.STAGE)  # its time_s: when it really ran
+    if stop_after != "extract" and advice.warn_low_texture(report.stages["extract"], conf.extract.backend):
+        report.stages["extract"] = {**report.stages["extract"], "low_texture": True}
     if first_run or stop_after == "extract":
         report.save()  # `sara map OUT` finds the images through run.json
     if stop_after == "extract":

@@ -1,0 +1,30 @@
+"""Advice given before the long work starts, from what the earlier stages measured."""
+
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+logger = logging.getLogger(__name__)
+
+#: SIFT keypoints per image (mean) under which a capture counts as low-texture: the shared scenes
+#: hold thousands per image; the turntables where SIFT split the model held about 250
+LOW_TEXTURE_KEYPOINTS = 500
+
+
+def low_texture(extract_info: dict[str, Any], backend: str) -> str:
+    """A warning when SIFT starved on these images (empty when it did not, or for learned features)."""
+    mean = float(extract_info.get("keypoints_mean") or 0.0)
+    if backend != "sift" or not extract_info.get("num_images") or mean >= LOW_TEXTURE_KEYPOINTS:
+        return ""
+    return (f"SIFT found {mean:.0f} keypoints per image on average (under {LOW_TEXTURE_KEYPOINTS}): a low-texture "
+            "capture, where SIFT's pairs are few and weak and the model may split into pieces; learned features "
+            "find more there: --preset aliked-lightglue (pip install 'sara[learned]')")
+
+
+def warn_low_texture(extract_info: dict[str, Any], backend: str) -> str:
+    """Log `low_texture`'s warning (once per run) and return it."""
+    text = low_texture(extract_info, backend)
+    if text:
+        logger.warning(text)
+    return text
