@@ -1,0 +1,82 @@
+"""A photo-collection stand-in made from a shared scene: every photo as if from another camera.
+
+Each image is rescaled by its own random factor (so each has its own size and focal length in
+pixels), its brightness, contrast, saturation and gamma changed, and saved as JPEG at a random
+quality; the true model gets one PINHOLE camera per image with the intrinsics scaled to match. It
+stands in for photos of one place from many people's cameras, with none of their other differences
+(viewpoint, season, occluders). Seeded: the same seed gives the same files.
+
+    python lab/scripts/photo_collection_standin.py ../shared/data/strecha-castle-P30 DEST [--seed 1]
+
+DEST gets images/, gt/ (COLMAP text) and SCENE.md (how it was made).
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+from PIL import Image, ImageEnhance
+
+
+def perturb(img: Image.Image, rng: np.random.Generator) -> tuple[Image.Image, float, int]:
+    """The photo as another camera would take it; returns it, its scale and its JPEG quality."""
+    scale = float(rng.uniform(0.35, 1.0))
+    size = (max(1, round(img.width * scale)), max(1, round(img.height * scale)))
+    out = img.convert("RGB").resize(size, Image.LANCZOS)
+    out = ImageEnhance.Brightness(out).enhance(float(rng.uniform(0.5, 1.5)))
+    out = ImageEnhance.Contrast(out).enhance(float(rng.uniform(0.6, 1.4)))
+    out = ImageEnhance.Color(out).enhance(float(rng.uniform(0.3, 1.7)))
+    gamma = float(rng.uniform(0.6, 1.6))
+    lut = [min(255, round(255 * (i / 255) ** gamma)) for i in range(256)] * 3
+    return out.point(lut), size[0] / img.width, int(rng.integers(50, 91))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("scene", type=Path)
+    parser.add_argument("dest", type=Path)
+    parser.add_argument("--seed", type=int, default=1)
+    args = parser.parse_args()
+    rng = np.random.default_rng(args.seed)
+    gt = pycolmap.Reconstruction()
+    gt.read_text(str(args.scene / "gt"))
+    (args.dest / "images").mkdir(parents=True, exist_ok=True)
+    (args.dest / "gt").mkdir(parents=True, exist_ok=True)
+    out = pycolmap.Reconstruction()
+    lines = []
+    for image_id in sorted(gt.images):
+        image = gt.images[image_id]
+        photo, scale, quality = perturb(Image.open(args.scene / "images" / image.name), rng)
+        name = Path(image.name).with_suffix(".jpg").name
+        photo.save(args.dest / "images" / name, quality=quality)
+        fx, fy, cx, cy = gt.cameras[image.camera_id].params[:4]
+        camera = pycolmap.Camera(model="PINHOLE", width=photo.width, height=photo.height,
+                                 params=[fx * scale, fy * scale, cx * scale, cy * scale], camera_id=image_id)
+        out.add_camera(camera)
+        lines.append(f"{image_id} {camera.width} {camera.height} {scale:.4f} {quality}")
+    # the true poses, written as text with the new names and cameras
+    with open(args.dest / "gt" / "cameras.txt", "w") as f:
+        for image_id in sorted(gt.images):
+            cam = out.cameras[image_id]
+            f.write(f"{image_id} PINHOLE {cam.width} {cam.height} " + " ".join(f"{p:.6f}" for p in cam.params) + "\n")
+    with open(args.dest / "gt" / "images.txt", "w") as f:
+        for image_id in sorted(gt.images):
+            image = gt.images[image_id]
+            pose = image.cam_from_world()
+            qx, qy, qz, qw = pose.rotation.quat
+            tx, ty, tz = pose.translation
+            name = Path(image.name).with_suffix(".jpg").name
+            f.write(f"{image_id} {qw} {qx} {qy} {qz} {tx} {ty} {tz} {image_id} {name}\n\n")
+    (args.dest / "gt" / "points3D.txt").write_text("")
+    (args.dest / "SCENE.md").write_text(
+        f"Photo-collection stand-in of {args.scene.name} (lab/scripts/photo_collection_standin.py, seed "
+        f"{args.seed}): each image rescaled by 0.35-1, brightness x0.5-1.5, contrast x0.6-1.4, saturation "
+        "x0.3-1.7, gamma 0.6-1.6, JPEG quality 50-90; one PINHOLE camera per image, intrinsics scaled.\n"
+        "image_id width height scale quality:\n" + "\n".join(lines) + "\n")
+
+
+if __name__ == "__main__":
+    main()
