@@ -7,13 +7,12 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 
 from sara import video
 from sara.video import FrameSettings, frame_name, frames_for_run, pick_sharpest, window_bounds
-
-cv2 = pytest.importorskip("cv2")
 
 
 def write_video(path: Path, frames: list[np.ndarray], fps: float = 5.0) -> Path:
@@ -159,7 +158,7 @@ def test_frames_sara_did_not_write_are_refused(tmp_path):
 def test_sara_run_on_a_video_resumes_and_refuses_other_settings(video_scene, tmp_path, run_cli, monkeypatch):
     clip, gt = video_scene
     out = tmp_path / "out"
-    result = run_cli("run", clip, out, "--frames", "5", "--gt", gt, "-q")
+    result = run_cli("run", clip, out, "--frames", "5", "--gt", gt, "-q", "--workers", "1")
     assert result.code == 0, result.err
     names = sorted(p.name for p in (out / "images").iterdir())
     assert len(names) == 5 and all(n.startswith("clip_f0000") for n in names)

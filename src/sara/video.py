@@ -26,8 +26,7 @@ import numpy as np
 from tqdm import tqdm
 
 from .colmap import model as colmap_model
-from .io import (OutputLock, OutputStateError, atomic_path, file_digest, prepare_output_dir, read_json,
-                 write_json_atomic)
+from .io import OutputLock, OutputStateError, atomic_path, file_digest, prepare_output_dir, read_json, write_json_atomic
 from .io.images import list_image_files
 
 logger = logging.getLogger(__name__)
