@@ -1,4 +1,4 @@
-"""Video input (`sara run VIDEO OUT`): frames picked evenly, the sharpest of each window, written as
+"""Video input (`sara run VIDEO OUT`): frames picked evenly, a sharp one of each window, written as
 PNG into OUT/images with names that say where they come from; reused by a re-run, refused when the
 video or the settings change; bad videos end in one line and exit 2."""
 
@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from sara import video
-from sara.video import FrameSettings, frame_name, frames_for_run, pick_sharpest, window_bounds
+from sara.video import FrameSettings, frame_name, frames_for_run, pick_sharp, window_bounds
 
 
 def write_video(path: Path, frames: list[np.ndarray], fps: float = 5.0) -> Path:
@@ -66,11 +66,17 @@ def test_windows_cover_every_frame_once_and_none_is_empty():
         window_bounds(3, 4)
 
 
-def test_the_sharpest_frame_of_each_window_is_picked():
+def test_a_sharp_frame_near_the_middle_of_each_window_is_picked():
     sharpness = np.array([1.0, 5.0, 2.0, 2.0, 9.0, 3.0, 3.0, 0.5, 4.0, 4.0])
-    assert pick_sharpest(sharpness, 4) == [1, 4, 5, 8]  # windows [0,2) [2,5) [5,7) [7,10); ties: the first
-    assert pick_sharpest(sharpness, 10) == list(range(10))
-    assert pick_sharpest(sharpness, 1) == [4]
+    # windows [0,2) [2,5) [5,7) [7,10): the sharpest where the others are far below it; among frames
+    # as sharp (within SHARP_ENOUGH), the one nearest the middle, the first of two as near
+    assert pick_sharp(sharpness, 4) == [1, 4, 5, 8]
+    assert pick_sharp(sharpness, 10) == list(range(10))
+    assert pick_sharp(sharpness, 1) == [4]
+    steady = np.array([100.0, 101.0, 99.0, 100.5, 100.0, 98.0, 100.0, 99.5, 101.0])
+    assert pick_sharp(steady, 3) == [1, 4, 7]  # evenly spaced, not the noise's maxima (1, 3, 8)
+    assert pick_sharp(np.array([100.0, 80.0, 20.0]), 1) == [0]  # 80 is blurred next to 100
+    assert pick_sharp(np.array([100.0, 95.0, 20.0]), 1) == [1]
 
 
 def test_frame_settings():
@@ -104,6 +110,43 @@ def test_blurred_frames_are_passed_over_and_the_record_says_where_each_frame_com
     written = cv2.imread(str(folder / "walk_f000005.png"))
     assert written.shape == (64, 96, 3)
     assert np.abs(written.astype(int) - noise_frames(8, blurred)[5]).mean() < 2  # FFV1 keeps the frame
+
+
+class MisstatingCapture:
+    """An OpenCV capture of `frames` whose container states `stated` frames (an estimate in some formats)."""
+
+    def __init__(self, frames: list[np.ndarray], stated: int) -> None:
+        self.frames, self.stated, self.position = frames, stated, 0
+
+    def get(self, prop: int) -> float:
+        return {cv2.CAP_PROP_FRAME_COUNT: self.stated, cv2.CAP_PROP_FPS: 4.0, cv2.CAP_PROP_FRAME_WIDTH: 96,
+                cv2.CAP_PROP_FRAME_HEIGHT: 64, cv2.CAP_PROP_POS_MSEC: 250.0 * (self.position - 1)}[prop]
+
+    def grab(self) -> bool:
+        self.position += 1
+        return self.position <= len(self.frames)
+
+    def retrieve(self) -> tuple[bool, np.ndarray]:
+        return True, self.frames[self.position - 1]
+
+    def read(self) -> tuple[bool, np.ndarray | None]:
+        return (True, self.retrieve()[1]) if self.grab() else (False, None)
+
+
+@pytest.mark.parametrize("stated", [0, 6, 10])
+def test_a_wrong_frame_count_in_the_container_picks_with_the_true_count(tmp_path, monkeypatch, stated):
+    import contextlib
+
+    frames = noise_frames(6, {1, 3, 4})  # windows [0,2) [2,4) [4,6): frames 0, 2, 5
+    monkeypatch.setattr(video, "open_video", contextlib.contextmanager(lambda path: iter([MisstatingCapture(
+        frames, stated)])))
+    clip = tmp_path / "walk.avi"
+    clip.write_bytes(b"stands for the video")
+    (tmp_path / "images").mkdir()
+    entry = video.decode_video(clip, tmp_path / "images", FrameSettings(frames=3), progress=False)
+    assert [f["index"] for f in entry["frames"]] == [0, 2, 5] and entry["num_frames"] == 6
+    assert sorted(p.name for p in (tmp_path / "images").iterdir()) == [f["name"] for f in entry["frames"]]
+    assert [f["time_s"] for f in entry["frames"]] == [0.0, 0.5, 1.25]
 
 
 def test_a_folder_of_videos_gives_the_frames_of_each(tmp_path):

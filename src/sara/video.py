@@ -2,8 +2,9 @@
 that the pipeline runs on them as on any folder of images (`sara run capture.mp4 OUT`).
 
 Frames are picked evenly in time: each video is cut into as many windows of consecutive frames as
-frames are wanted, and the sharpest frame of each window is kept (the variance of the Laplacian of
-its grey image), since motion blur is what spoils the frames of a hand-held capture. A frame's name
+frames are wanted, and one sharp frame of each window is kept (by the variance of the Laplacian of
+its grey image: the frame nearest the window's middle among those nearly as sharp as the sharpest),
+since motion blur is what spoils the frames of a hand-held capture. A frame's name
 says where it comes from and sorts in time order: `<video stem>_f<frame index>.png`, the index
 counted from 0 in the video. `OUT/.sara/video.json` records the videos (size and digest), the
 settings and every picked frame (index, time, sharpness): a re-run with the same videos and
@@ -37,6 +38,9 @@ VIDEO_EXTENSIONS = (".mp4", ".mov", ".m4v", ".avi", ".mkv", ".webm", ".mpg", ".m
 DEFAULT_FRAMES = 150
 #: frames are scored for sharpness at most this many pixels a side (the picks hardly change, the time does)
 SHARPNESS_SIDE_PX = 1024
+#: a frame at least this fraction of its window's highest sharpness counts as sharp (motion blur
+#: halves the variance of the Laplacian or worse; steady frames differ by a few percent)
+SHARP_ENOUGH = 0.9
 #: where the record of the picked frames lives, relative to the output folder
 RECORD = Path(".sara") / "video.json"
 #: the ground truth of the picked frames (`--gt` of a video run), relative to the output folder
@@ -57,14 +61,23 @@ def window_bounds(num_frames: int, num_picks: int) -> np.ndarray:
     return (np.arange(num_picks + 1, dtype=np.int64) * num_frames) // num_picks
 
 
-def pick_sharpest(sharpness: np.ndarray, num_picks: int) -> list[int]:
-    """The index of the sharpest frame of each of `num_picks` even windows (the first on ties).
+def pick_sharp(sharpness: np.ndarray, num_picks: int) -> list[int]:
+    """One frame index for each of `num_picks` even windows: the sharp frame nearest the window's
+    middle, where sharp means at least SHARP_ENOUGH times the window's highest sharpness (the first
+    of two equally near).
 
-    sharpness: (num_frames,) float, higher is sharper.
+    sharpness: (num_frames,) float, higher is sharper. Taking the sharpest frame outright would pick
+    at random among the equally sharp frames of a steady video, and two picks could then be
+    neighbours; a blurred frame scores far below SHARP_ENOUGH and is still passed over.
     """
     sharpness = np.asarray(sharpness, dtype=np.float64)
     bounds = window_bounds(len(sharpness), num_picks)
-    return [int(lo + np.argmax(sharpness[lo:hi])) for lo, hi in zip(bounds[:-1], bounds[1:])]
+    picks = []
+    for lo, hi in zip(bounds[:-1], bounds[1:]):
+        window = sharpness[lo:hi]
+        sharp = np.flatnonzero(window >= SHARP_ENOUGH * window.max())
+        picks.append(int(lo + sharp[np.argmin(np.abs(sharp - (hi - lo - 1) / 2))]))
+    return picks
 
 
 def laplacian_sharpness(frame: np.ndarray) -> float:
@@ -192,49 +205,31 @@ def _write_png(frame: np.ndarray, path: Path) -> int:
 def decode_video(video: Path, folder: Path, settings: FrameSettings, *, progress: bool = True) -> dict[str, Any]:
     """Pick the frames of one video and write them into `folder`; returns the video's record entry.
 
-    One pass scores every frame and keeps the sharpest of each window, laid out with the frame count
-    the container states; where that count is wrong (it is an estimate in some containers), a
-    second pass writes the frames picked with the true count.
+    Two passes: the first scores every frame (and counts them: the count a container states is an
+    estimate in some formats), the second writes the frames picked. Keeping the candidates of a
+    window in memory instead would cost a window of full-size frames.
     """
     import cv2
 
-    frames: list[tuple[float, float]] = []  # (sharpness, time in s) of every frame
-    written: dict[int, int] = {}  # frame index -> bytes
+    sharpness, times = [], []  # of every frame; times in seconds
     with open_video(video) as capture:
         stated = int(capture.get(cv2.CAP_PROP_FRAME_COUNT))
         fps = float(capture.get(cv2.CAP_PROP_FPS) or 0.0)
         size = (int(capture.get(cv2.CAP_PROP_FRAME_WIDTH)), int(capture.get(cv2.CAP_PROP_FRAME_HEIGHT)))
-        bounds = window_bounds(stated, settings.num_picks(stated, fps, video.name)) if stated > 0 else None
-        best: tuple[float, int, np.ndarray] | None = None  # the current window's sharpest frame
-        window = 0
-        for frame in tqdm(_frames(capture), total=max(stated, 0) or None, desc=f"frames of {video.name}",
+        for frame in tqdm(_frames(capture), total=stated if stated > 0 else None, desc=f"score frames of {video.name}",
                           unit="frame", disable=not progress):
-            index = len(frames)
-            frames.append((laplacian_sharpness(frame), capture.get(cv2.CAP_PROP_POS_MSEC) / 1000.0))
-            if bounds is None or index >= stated:  # no count stated, or a wrong one: picked again below
-                continue
-            if best is not None and index >= bounds[window + 1]:
-                written[best[1]] = _write_png(best[2], folder / frame_name(video.stem, best[1], stated))
-                best, window = None, int(np.searchsorted(bounds, index, side="right")) - 1
-            if best is None or frames[-1][0] > best[0]:
-                best = (frames[-1][0], index, frame)
-        if best is not None:
-            written[best[1]] = _write_png(best[2], folder / frame_name(video.stem, best[1], stated))
-    if not frames:
+            sharpness.append(laplacian_sharpness(frame))
+            times.append(capture.get(cv2.CAP_PROP_POS_MSEC) / 1000.0)
+    if not sharpness:
         raise ValueError(f"cannot read the video {video}: no frame could be decoded")
-    sharpness = np.array([s for s, _ in frames])
-    picks = pick_sharpest(sharpness, settings.num_picks(len(frames), fps, video.name))
-    if len(frames) != stated:
-        logger.warning("%s states %d frames but holds %d: picking again with the true count", video.name, stated,
-                       len(frames))
-        for index in written:
-            (folder / frame_name(video.stem, index, stated)).unlink(missing_ok=True)
-        written = _write_frames(video, folder, picks, len(frames))
-    entry = {"name": video.name, "path": str(video.resolve()), **_identity(video), "num_frames": len(frames),
+    num_frames = len(sharpness)
+    picks = pick_sharp(np.array(sharpness), settings.num_picks(num_frames, fps, video.name))
+    written = _write_frames(video, folder, picks, num_frames, progress=progress)
+    entry = {"name": video.name, "path": str(video.resolve()), **_identity(video), "num_frames": num_frames,
              "fps": fps, "width": size[0], "height": size[1], "frames": []}
     for index in picks:
-        entry["frames"].append({"name": frame_name(video.stem, index, len(frames)), "index": index,
-                                "time_s": round(frames[index][1], 6), "sharpness": round(float(sharpness[index]), 3),
+        entry["frames"].append({"name": frame_name(video.stem, index, num_frames), "index": index,
+                                "time_s": round(times[index], 6), "sharpness": round(sharpness[index], 3),
                                 "bytes": written[index]})
     return entry
 
@@ -247,11 +242,13 @@ def _frames(capture: Any) -> Iterator[np.ndarray]:
         yield frame
 
 
-def _write_frames(video: Path, folder: Path, picks: list[int], num_frames: int) -> dict[int, int]:
+def _write_frames(video: Path, folder: Path, picks: list[int], num_frames: int, *,
+                  progress: bool = True) -> dict[int, int]:
     """Decode the video again and write the frames `picks` (indices, ascending); index -> bytes."""
     wanted, written = set(picks), {}
     with open_video(video) as capture:
-        for index in range(num_frames):
+        for index in tqdm(range(picks[-1] + 1), desc=f"write frames of {video.name}", unit="frame",
+                          disable=not progress):
             if not capture.grab():
                 break
             if index in wanted:
@@ -284,6 +281,8 @@ def frames_for_run(videos: list[Path], out_dir: Path, settings: FrameSettings, *
     marked complete only at the end). Raises OutputStateError (exit 3) when the folder holds frames
     of other videos or settings, or files sara did not write; `overwrite` picks them again instead.
     """
+    if gt_dir is not None and not Path(gt_dir).exists():  # before any decoding
+        raise FileNotFoundError(f"ground-truth folder not found: {gt_dir}")
     out_dir = prepare_output_dir(Path(out_dir))
     with OutputLock(out_dir):
         folder = _picked_frames(videos, out_dir, settings, overwrite=overwrite, progress=progress)

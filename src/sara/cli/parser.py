@@ -142,7 +142,7 @@ def _add_run(sub: argparse._SubParsersAction) -> None:
                    help=f"pair source: one of {_pair_source_names()} (default sara), or a pairs file")
     frames = p.add_mutually_exclusive_group()
     frames.add_argument("--frames", type=_int_at_least(2),
-                        help="video input: frames to pick per video, the sharpest of even windows (default 150, "
+                        help="video input: frames to pick per video, a sharp one of each even window (default 150, "
                              "at most every frame), written to OUT/images")
     frames.add_argument("--fps", type=_positive_float, help="video input: frames to pick per second of video, "
                                                             "instead of --frames")
