@@ -38,8 +38,9 @@ VIDEO_EXTENSIONS = (".mp4", ".mov", ".m4v", ".avi", ".mkv", ".webm", ".mpg", ".m
 DEFAULT_FRAMES = 150
 #: frames are scored for sharpness at most this many pixels a side (the picks hardly change, the time does)
 SHARPNESS_SIDE_PX = 1024
-#: a frame at least this fraction of its window's highest sharpness counts as sharp (motion blur
-#: halves the variance of the Laplacian or worse; steady frames differ by a few percent)
+#: a frame at least this fraction of its window's highest sharpness counts as sharp: the frames of a
+#: steady sequence differ from their neighbours by a few percent (lab/notes/VIDEO.md), a blurred one
+#: scores far lower
 SHARP_ENOUGH = 0.9
 #: where the record of the picked frames lives, relative to the output folder
 RECORD = Path(".sara") / "video.json"
