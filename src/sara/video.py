@@ -4,9 +4,9 @@ that the pipeline runs on them as on any folder of images (`sara run capture.mp4
 Frames are picked evenly in time: each video is cut into as many windows of consecutive frames as
 frames are wanted, and one sharp frame of each window is kept (by the variance of the Laplacian of
 its grey image: the frame nearest the window's middle among those nearly as sharp as the sharpest),
-since motion blur is what spoils the frames of a hand-held capture. A frame's name
-says where it comes from and sorts in time order: `<video stem>_f<frame index>.png`, the index
-counted from 0 in the video. `OUT/.sara/video.json` records the videos (size and digest), the
+since motion blur is what spoils the frames of a hand-held capture. A frame's name says where it
+comes from and sorts in time order: `<video stem>_f<frame index>.png`, the index counted from 0 in
+the video. `OUT/.sara/video.json` records the videos (size and digest), the
 settings and every picked frame (index, time, sharpness): a re-run with the same videos and
 settings reuses the frames without decoding, other videos or settings are refused.
 """
@@ -36,11 +36,10 @@ VIDEO_EXTENSIONS = (".mp4", ".mov", ".m4v", ".avi", ".mkv", ".webm", ".mpg", ".m
                     ".flv", ".3gp", ".ogv")
 #: frames picked per video when neither --frames nor --fps is given
 DEFAULT_FRAMES = 150
-#: frames are scored for sharpness at most this many pixels a side (the picks hardly change, the time does)
+#: frames are scored for sharpness at most this many pixels a side, which bounds the cost for 4K video
 SHARPNESS_SIDE_PX = 1024
 #: a frame at least this fraction of its window's highest sharpness counts as sharp: the frames of a
-#: steady sequence differ from their neighbours by a few percent (lab/notes/VIDEO.md), a blurred one
-#: scores far lower
+#: steady sequence differ from their neighbours by a few percent, a blurred one scores far lower
 SHARP_ENOUGH = 0.9
 #: where the record of the picked frames lives, relative to the output folder
 RECORD = Path(".sara") / "video.json"
