@@ -10,13 +10,14 @@ reason; any other line fails, so the docs cannot show a command that nobody runs
 Placeholders (as in the docs): IMAGES the synthetic scene's images (conftest's `synthetic_scene`),
 GT its true model, PAIRS a pairs file of it (the finished run's), HLOC a folder of hloc features and
 matches of it; SCENE a folder holding `images/` and `gt/` of a smaller scene of 6 images (a
-benchmark runs every method on it); DEST and BENCH new folders. OUT follows what the command does
+benchmark runs every method on it); VIDEO a video of SCENE's 6 images, one frame each; DEST and
+BENCH new folders. OUT follows what the command does
 with it, one output folder per block:
 
 - `sara run` starts a new OUT: a copy of the session's finished run (`finished_run_template`, made
   by `sara run IMAGES OUT`), which the command resumes, redoing the stages whose settings it changes;
-  an empty folder when it changes the extraction (a preset, `-s extract.*`), which a finished run
-  would refuse.
+  an empty folder when it changes the extraction (a preset, `-s extract.*`, a VIDEO's frames), which
+  a finished run would refuse.
 - `sara extract` starts a new OUT holding the finished run's features only (as `sara bench` and
   `sara demo` share one extraction), so that the stages after it (`pairs`, `match`, `map`) do their
   work; an empty one when it changes the extraction. `sara pairs` continues the block's OUT, else
@@ -52,7 +53,7 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 SHELL_LANGUAGES = {"bash", "sh", "shell", "console"}
-PLACEHOLDERS = ("IMAGES", "OUT", "GT", "DEST", "SCENE", "BENCH", "PAIRS", "HLOC")
+PLACEHOLDERS = ("IMAGES", "OUT", "GT", "DEST", "SCENE", "BENCH", "PAIRS", "HLOC", "VIDEO")
 PLACEHOLDER = re.compile(r"(?<![A-Za-z0-9_])(" + "|".join(PLACEHOLDERS) + r")(?![A-Za-z0-9_])")
 ENV_ASSIGNMENT = re.compile(r"[A-Za-z_][A-Za-z0-9_]*=")
 SEPARATORS = {"&&", ";"}
@@ -299,7 +300,7 @@ def needs_learned_backends(args: list[str]) -> bool:
 def changes_extraction(args: list[str]) -> bool:
     """Whether a run with these arguments would refuse the finished run's features."""
     preset = option(args, "--preset")
-    return (preset not in (None, FINISHED_RUN_PRESET) or "--recursive" in args
+    return (preset not in (None, FINISHED_RUN_PRESET) or "--recursive" in args or "VIDEO" in args
             or option(args, "--camera-mode") is not None
             or any(key.startswith(("extract.", "images.")) for key in overrides(args)))
 
@@ -381,6 +382,8 @@ class Workspace:
             return pairs
         if name == "HLOC":
             return make_hloc_folder(self.root / "hloc", self.gt, self.finished_run / "pairs.txt")
+        if name == "VIDEO":
+            return make_video(self.root / "capture.avi", self.scene / "images")
         raise KeyError(name)
 
     def substitute(self, args: list[str], env: dict[str, str] | None = None) -> tuple[list[str], dict[str, str]]:
@@ -406,6 +409,15 @@ def make_hloc_folder(folder: Path, gt: Path, pairs: Path) -> Path:
     shutil.copyfile(pairs, folder / "pairs-sara.txt")
     match_mutual_nn(features, folder / "pairs-sara.txt", folder / "feats-superpoint-n4096-r1024_matches.h5")
     return folder
+
+
+def make_video(path: Path, images: Path) -> Path:
+    """A lossless video (FFV1 in AVI) of the images of a folder, in name order, one frame each."""
+    import cv2
+
+    from test_video import write_video
+
+    return write_video(path, [cv2.imread(str(p)) for p in sorted(images.iterdir())])
 
 
 def learned_scene() -> tuple[Path, Path]:
@@ -564,4 +576,6 @@ def test_placeholders_and_out(tmp_path, finished_run_template, synthetic_scene, 
     assert Path(space.substitute(["match", "OUT", "--pairs", "PAIRS"])[0][3]).read_text().strip()
     assert needs_learned_backends(["run", "IMAGES", "OUT", "--preset", "aliked-lightglue"])
     assert not needs_learned_backends(["run", "IMAGES", "OUT", "-s", "retrieval.num_neighbors=3"])
+    video_run = space.substitute(["run", "VIDEO", "OUT"])[0]
+    assert Path(video_run[1]).stat().st_size > 0 and not Path(video_run[2]).exists()  # the frames: a new folder
 

@@ -4,6 +4,7 @@ prints). The parser attaches each handler to its command (`parser.py`)."""
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 from typing import Any
 
 #: command-line flags that set a configuration key (applied over the preset and the -s overrides)
@@ -31,8 +32,10 @@ def cmd_run(args: argparse.Namespace) -> None:
     from ..pipeline import run
     from ..report.html import write_report
 
-    run(config_from_args(args, args.pairs), args.images, args.out, gt_dir=args.gt, overwrite=args.overwrite,
-        progress=not args.quiet, verbose_colmap=args.verbose)
+    conf = config_from_args(args, args.pairs)
+    images, gt = _video_frames(args, conf)
+    run(conf, images, args.out, gt_dir=gt, overwrite=args.overwrite, progress=not args.quiet,
+        verbose_colmap=args.verbose)
     print((args.out / "report.md").read_text(encoding="utf-8"))
     print(f"report: {write_report(args.out)}")
     if args.export:
@@ -41,6 +44,24 @@ def cmd_run(args: argparse.Namespace) -> None:
         dest = export(args.out, args.out / args.export, args.export, progress=not args.quiet,
                       verbose_colmap=args.verbose)
         print(f"{args.export} export -> {dest}")
+
+
+def _video_frames(args: argparse.Namespace, conf: Any) -> tuple[Path, Path | None]:
+    """(images, ground truth) of `sara run`: for a video or a folder of videos, the frames picked into
+    OUT/images and the ground truth of those frames (`sara.video`); else the arguments as given."""
+    from ..video import FrameSettings, find_videos, frames_for_run
+
+    videos = find_videos(args.images, recursive=conf.images.recursive)
+    if not videos:
+        if args.frames is not None or args.fps is not None:
+            raise ValueError(f"--{'frames' if args.fps is None else 'fps'} applies to a video or a folder of "
+                             f"videos; {args.images} is a folder of images")
+        return args.images, args.gt
+    from ..pipeline import preflight
+
+    preflight(conf)  # a bad option or --pairs fails before the video is decoded
+    return frames_for_run(videos, args.out, FrameSettings(frames=args.frames, fps=args.fps), gt_dir=args.gt,
+                          overwrite=args.overwrite, progress=not args.quiet)
 
 
 def cmd_extract(args: argparse.Namespace) -> None:

@@ -93,6 +93,16 @@ def _int_at_least(low: int):
     return parse
 
 
+def _positive_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not 0 < value < float("inf"):
+        raise argparse.ArgumentTypeError(f"must be a number above 0, got {text}")
+    return value
+
+
 def _pair_source_names() -> str:
     from ..pairs import SOURCES
 
@@ -132,10 +142,16 @@ def _add_sequence(p: argparse.ArgumentParser) -> None:
 
 def _add_run(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("run", help="images -> pairs -> matches -> COLMAP model (sparse/0) in one go")
-    p.add_argument("images", type=Path, help="folder of images")
+    p.add_argument("images", type=Path, help="folder of images, a video, or a folder of videos")
     p.add_argument("out", type=Path, help="output folder (created; re-running resumes)")
     p.add_argument("--pairs", default=None,
                    help=f"pair source: one of {_pair_source_names()} (default sara), or a pairs file")
+    frames = p.add_mutually_exclusive_group()
+    frames.add_argument("--frames", type=_int_at_least(2),
+                        help="video input: frames to pick per video, a sharp one of each even window (default 150, "
+                             "at most every frame), written to OUT/images")
+    frames.add_argument("--fps", type=_positive_float, help="video input: frames to pick per second of video, "
+                                                            "instead of --frames")
     p.add_argument("--mapper", choices=["incremental", "global"], help="COLMAP mapper (default incremental)")
     _add_sequence(p)
     p.add_argument("--gt", type=Path, help="ground-truth model folder: evaluate the result against it")

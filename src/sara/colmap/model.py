@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import shutil
 import tempfile
-from collections.abc import Mapping
+from collections.abc import Collection, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -103,15 +103,20 @@ def read_model(path: Path) -> ModelData:
     )
 
 
-def write_model(src: Path, dst: Path, *, rename: Mapping[str, str] | None = None, text: bool = False) -> Path:
+def write_model(src: Path, dst: Path, *, rename: Mapping[str, str] | None = None, text: bool = False,
+                keep: Collection[str] | None = None) -> Path:
     """Copy the model in `src` to `dst` (binary, or text), renaming images on the way.
 
     rename: old image name -> new image name (images not listed keep their name).
+    keep: the (new) names of the images to keep posed; the others lose their pose and are left out
+    of the written model (None: every image).
     """
     rec = _read(src)
     for image in rec.images.values():
         if rename and image.name in rename:
             image.name = rename[image.name]
+        if keep is not None and image.name not in keep and image.has_pose:
+            rec.deregister_frame(image.frame_id)
     dst = Path(dst)
     dst.mkdir(parents=True, exist_ok=True)
     if text:

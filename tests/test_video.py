@@ -1,0 +1,258 @@
+"""Video input (`sara run VIDEO OUT`): frames picked evenly, a sharp one of each window, written as
+PNG into OUT/images with names that say where they come from; reused by a re-run, refused when the
+video or the settings change; bad videos end in one line and exit 2."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from sara import video
+from sara.video import FrameSettings, frame_name, frames_for_run, pick_sharp, window_bounds
+
+
+def write_video(path: Path, frames: list[np.ndarray], fps: float = 5.0) -> Path:
+    """A lossless video (FFV1 in AVI, which OpenCV's FFmpeg writes and reads everywhere)."""
+    height, width = frames[0].shape[:2]
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"FFV1"), fps, (width, height))
+    assert writer.isOpened(), "OpenCV cannot write FFV1 here"
+    for frame in frames:
+        writer.write(frame)
+    writer.release()
+    return path
+
+
+def noise_frames(num: int, blurred: set[int], seed: int = 0) -> list[np.ndarray]:
+    """Textured frames (96x64 px); those of `blurred` are smoothed, as motion blur does."""
+    rng = np.random.default_rng(seed)
+    frames = []
+    for k in range(num):
+        frame = cv2.resize(rng.integers(0, 256, (16, 24, 3), dtype=np.uint8), (96, 64),
+                           interpolation=cv2.INTER_NEAREST)
+        frames.append(cv2.GaussianBlur(frame, (0, 0), 3) if k in blurred else frame)
+    return frames
+
+
+@pytest.fixture(scope="module")
+def video_scene(tmp_path_factory):
+    """(video of a synthetic scene's 6 images, its true model with the frames' names)."""
+    from sara.colmap import model
+    from sara.synthetic import make_scene
+
+    root = tmp_path_factory.mktemp("video_scene")
+    images, gt = make_scene(root / "scene", num_images=6)
+    names = sorted(p.name for p in images.iterdir())
+    clip = write_video(root / "clip.avi", [cv2.imread(str(images / name)) for name in names])
+    rename = {name: frame_name("clip", k, len(names)) for k, name in enumerate(names)}
+    return clip, model.write_model(gt, root / "gt", rename=rename, text=True)
+
+
+# ---------------------------------------------------------------------------------------------
+# The pure core
+# ---------------------------------------------------------------------------------------------
+
+
+def test_windows_cover_every_frame_once_and_none_is_empty():
+    assert window_bounds(10, 4).tolist() == [0, 2, 5, 7, 10]
+    assert window_bounds(5, 5).tolist() == [0, 1, 2, 3, 4, 5]
+    for frames in range(1, 40):
+        for picks in range(1, frames + 1):
+            assert np.all(np.diff(window_bounds(frames, picks)) >= 1)
+    with pytest.raises(ValueError):
+        window_bounds(3, 4)
+
+
+def test_a_sharp_frame_near_the_middle_of_each_window_is_picked():
+    sharpness = np.array([1.0, 5.0, 2.0, 2.0, 9.0, 3.0, 3.0, 0.5, 4.0, 4.0])
+    # windows [0,2) [2,5) [5,7) [7,10): the sharpest where the others are far below it; among frames
+    # as sharp (within SHARP_ENOUGH), the one nearest the middle, the first of two as near
+    assert pick_sharp(sharpness, 4) == [1, 4, 5, 8]
+    assert pick_sharp(sharpness, 10) == list(range(10))
+    assert pick_sharp(sharpness, 1) == [4]
+    steady = np.array([100.0, 101.0, 99.0, 100.5, 100.0, 98.0, 100.0, 99.5, 101.0])
+    assert pick_sharp(steady, 3) == [1, 4, 7]  # evenly spaced, not the noise's maxima (1, 3, 8)
+    assert pick_sharp(np.array([100.0, 80.0, 20.0]), 1) == [0]  # 80 is blurred next to 100
+    assert pick_sharp(np.array([100.0, 95.0, 20.0]), 1) == [1]
+
+
+def test_frame_settings():
+    assert FrameSettings().to_dict() == {"frames": video.DEFAULT_FRAMES, "fps": None}
+    assert FrameSettings(frames=8).num_picks(5, 30.0, "v") == 5  # at most every frame
+    assert FrameSettings(fps=2).num_picks(300, 30.0, "v") == 20  # 10 s of video
+    assert FrameSettings(fps=2).flag() == "--fps 2"
+    with pytest.raises(ValueError, match="frame rate"):
+        FrameSettings(fps=2).num_picks(300, 0.0, "v")
+    with pytest.raises(ValueError):
+        FrameSettings(frames=3, fps=1.0)
+
+
+# ---------------------------------------------------------------------------------------------
+# Decoding, the record, resuming
+# ---------------------------------------------------------------------------------------------
+
+
+def test_blurred_frames_are_passed_over_and_the_record_says_where_each_frame_comes_from(tmp_path):
+    blurred = {0, 3, 4, 7}  # windows of 8 frames into 4: [0,2) [2,4) [4,6) [6,8)
+    clip = write_video(tmp_path / "walk.avi", noise_frames(8, blurred), fps=4.0)
+    folder, gt = frames_for_run([clip], tmp_path / "out", FrameSettings(frames=4), progress=False)
+    assert gt is None and folder == tmp_path / "out" / "images"
+    assert sorted(p.name for p in folder.iterdir()) == [f"walk_f00000{k}.png" for k in (1, 2, 5, 6)]
+    record = json.loads((tmp_path / "out" / video.RECORD).read_text())
+    assert record["complete"] and record["settings"] == {"frames": 4, "fps": None}
+    (entry,) = record["videos"]
+    assert entry["num_frames"] == 8 and entry["name"] == "walk.avi" and entry["fps"] == 4.0
+    assert [f["index"] for f in entry["frames"]] == [1, 2, 5, 6]
+    assert [f["time_s"] for f in entry["frames"]] == [0.25, 0.5, 1.25, 1.5]
+    written = cv2.imread(str(folder / "walk_f000005.png"))
+    assert written.shape == (64, 96, 3)
+    assert np.abs(written.astype(int) - noise_frames(8, blurred)[5]).mean() < 2  # FFV1 keeps the frame
+
+
+class MisstatingCapture:
+    """An OpenCV capture of `frames` whose container states `stated` frames (an estimate in some formats)."""
+
+    def __init__(self, frames: list[np.ndarray], stated: int) -> None:
+        self.frames, self.stated, self.position = frames, stated, 0
+
+    def get(self, prop: int) -> float:
+        return {cv2.CAP_PROP_FRAME_COUNT: self.stated, cv2.CAP_PROP_FPS: 4.0, cv2.CAP_PROP_FRAME_WIDTH: 96,
+                cv2.CAP_PROP_FRAME_HEIGHT: 64, cv2.CAP_PROP_POS_MSEC: 250.0 * (self.position - 1)}[prop]
+
+    def grab(self) -> bool:
+        self.position += 1
+        return self.position <= len(self.frames)
+
+    def retrieve(self) -> tuple[bool, np.ndarray]:
+        return True, self.frames[self.position - 1]
+
+    def read(self) -> tuple[bool, np.ndarray | None]:
+        return (True, self.retrieve()[1]) if self.grab() else (False, None)
+
+
+@pytest.mark.parametrize("stated", [0, 6, 10])
+def test_a_wrong_frame_count_in_the_container_picks_with_the_true_count(tmp_path, monkeypatch, stated):
+    import contextlib
+
+    frames = noise_frames(6, {1, 3, 4})  # windows [0,2) [2,4) [4,6): frames 0, 2, 5
+    monkeypatch.setattr(video, "open_video", contextlib.contextmanager(lambda path: iter([MisstatingCapture(
+        frames, stated)])))
+    clip = tmp_path / "walk.avi"
+    clip.write_bytes(b"stands for the video")
+    (tmp_path / "images").mkdir()
+    entry = video.decode_video(clip, tmp_path / "images", FrameSettings(frames=3), progress=False)
+    assert [f["index"] for f in entry["frames"]] == [0, 2, 5] and entry["num_frames"] == 6
+    assert sorted(p.name for p in (tmp_path / "images").iterdir()) == [f["name"] for f in entry["frames"]]
+    assert [f["time_s"] for f in entry["frames"]] == [0.0, 0.5, 1.25]
+
+
+def test_a_folder_of_videos_gives_the_frames_of_each(tmp_path):
+    folder = tmp_path / "videos"
+    folder.mkdir()
+    write_video(folder / "a.avi", noise_frames(4, set(), seed=1))
+    write_video(folder / "b.avi", noise_frames(6, set(), seed=2))
+    videos = video.find_videos(folder)
+    assert [v.name for v in videos] == ["a.avi", "b.avi"]
+    images, _ = frames_for_run(videos, tmp_path / "out", FrameSettings(frames=3), progress=False)
+    names = sorted(p.name for p in images.iterdir())
+    assert names[:3] == ["a_f000000.png", "a_f000001.png", "a_f000002.png"]  # windows [0,1) [1,2) [2,4)
+    b_indices = [int(name[3:9]) for name in names[3:]]
+    assert len(b_indices) == 3 and [k // 2 for k in b_indices] == [0, 1, 2]  # one of each of [0,2) [2,4) [4,6)
+    cv2.imwrite(str(folder / "c.png"), noise_frames(1, set())[0])
+    assert video.find_videos(folder) == []  # a folder with images is a folder of images
+
+
+def test_a_killed_decoding_is_redone_and_leaves_nothing_behind(tmp_path):
+    clip = write_video(tmp_path / "walk.avi", noise_frames(6, {1, 3, 4}))
+    settings = FrameSettings(frames=3)
+    out = tmp_path / "out"
+    frames_for_run([clip], out, settings, progress=False)
+    record = json.loads((out / video.RECORD).read_text())
+    # as a kill mid-decoding leaves it: the record not complete, a frame half-written beside the others
+    (out / video.RECORD).write_text(json.dumps({**record, "complete": False, "videos": []}))
+    (out / "images" / ".walk_f000003.png.x1y2.tmp").write_bytes(b"\x89PNG half")
+    (out / "images" / "walk_f000002.png").unlink()
+    frames_for_run([clip], out, settings, progress=False)
+    assert sorted(p.name for p in (out / "images").iterdir()) == ["walk_f000000.png", "walk_f000002.png",
+                                                                  "walk_f000005.png"]
+    assert json.loads((out / video.RECORD).read_text())["complete"]
+
+
+def test_frames_sara_did_not_write_are_refused(tmp_path):
+    from sara.io import OutputStateError
+
+    clip = write_video(tmp_path / "walk.avi", noise_frames(4, set()))
+    (tmp_path / "out" / "images").mkdir(parents=True)
+    (tmp_path / "out" / "images" / "mine.jpg").write_bytes(b"x")
+    with pytest.raises(OutputStateError, match="mine.jpg"):
+        frames_for_run([clip], tmp_path / "out", FrameSettings(), progress=False)
+    frames_for_run([clip], tmp_path / "out", FrameSettings(), overwrite=True, progress=False)
+    assert sorted(p.name for p in (tmp_path / "out" / "images").iterdir())[0] == "walk_f000000.png"
+
+
+# ---------------------------------------------------------------------------------------------
+# Through the command line
+# ---------------------------------------------------------------------------------------------
+
+
+def test_sara_run_on_a_video_resumes_and_refuses_other_settings(video_scene, tmp_path, run_cli, monkeypatch):
+    clip, gt = video_scene
+    out = tmp_path / "out"
+    result = run_cli("run", clip, out, "--frames", "5", "--gt", gt, "-q", "--workers", "1")
+    assert result.code == 0, result.err
+    names = sorted(p.name for p in (out / "images").iterdir())
+    assert len(names) == 5 and all(n.startswith("clip_f0000") for n in names)
+    metrics = json.loads((out / "metrics.json").read_text())
+    # scored on the 5 frames picked, not on the 6 frames the ground truth poses
+    assert metrics["num_images_gt"] == 5 and metrics["num_registered"] == 5
+    assert json.loads((out / "run.json").read_text())["images_root"] == str((out / "images").resolve())
+
+    def no_decoding(*args, **kwargs):
+        raise AssertionError("decoded again")
+
+    monkeypatch.setattr(video, "decode_video", no_decoding)
+    mtimes = {p.name: p.stat().st_mtime_ns for p in (out / "images").iterdir()}
+    again = run_cli("run", clip, out, "--frames", "5", "--gt", gt, "-q")
+    assert again.code == 0, again.err
+    assert {p.name: p.stat().st_mtime_ns for p in (out / "images").iterdir()} == mtimes
+
+    other = run_cli("run", clip, out, "--frames", "3")
+    assert other.code == 3 and len(other.error_lines) == 1, other.err
+    assert "--frames 5, not --frames 3" in other.error_lines[0] and "--overwrite" in other.error_lines[0]
+    write_video(tmp_path / "clip.avi", noise_frames(6, set()))  # same name, other content
+    changed = run_cli("run", tmp_path / "clip.avi", out, "--frames", "5")
+    assert changed.code == 3 and "clip.avi changed" in changed.error_lines[0], changed.err
+    assert sorted(p.name for p in (out / "images").iterdir()) == names  # nothing mixed in
+
+
+@pytest.mark.parametrize("content, message", [
+    (b"not a video at all" * 50, "cannot read the video"),
+    (b"", "empty file"),
+])
+def test_an_unreadable_video_is_one_line_and_exit_2(tmp_path, run_cli, content, message):
+    bad = tmp_path / "capture.mp4"
+    bad.write_bytes(content)
+    result = run_cli("run", bad, tmp_path / "out")
+    assert result.code == 2 and len(result.error_lines) == 1 and message in result.error_lines[0], result.err
+    assert not (tmp_path / "out" / "images").exists() or not any((tmp_path / "out" / "images").iterdir())
+
+
+def test_a_video_without_frames_and_a_file_of_unknown_kind_are_refused(tmp_path, run_cli):
+    empty = cv2.VideoWriter(str(tmp_path / "empty.avi"), cv2.VideoWriter_fourcc(*"FFV1"), 5, (64, 48))
+    empty.release()
+    result = run_cli("run", tmp_path / "empty.avi", tmp_path / "out")
+    assert result.code == 2 and "no frame could be decoded" in result.error_lines[0], result.err
+    (tmp_path / "capture.xyz").write_bytes(b"data")
+    result = run_cli("run", tmp_path / "capture.xyz", tmp_path / "out2")
+    assert result.code == 2 and "neither a folder of images nor a video" in result.error_lines[0], result.err
+
+
+def test_frames_options_need_a_video(synthetic_scene, tmp_path, run_cli):
+    images, _ = synthetic_scene
+    result = run_cli("run", images, tmp_path / "out", "--frames", "5")
+    assert result.code == 2 and "--frames applies to a video" in result.error_lines[0], result.err
+    result = run_cli("run", images, tmp_path / "out", "--fps", "0")
+    assert result.code == 2 and len(result.error_lines) == 1
