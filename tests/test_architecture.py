@@ -20,7 +20,7 @@ FLOORS = {
     "colmap": 2, "weights": 2,
     "features": 3, "matchers": 3, "scoring": 3, "retrieval": 3, "selection": 3, "evaluation": 3,
     "execute_ray": 3,
-    "extract": 4, "match": 4, "mapping": 4, "pairs": 4, "gt_pairs": 4, "synthetic": 4,
+    "extract": 4, "incremental": 4, "match": 4, "mapping": 4, "pairs": 4, "gt_pairs": 4, "synthetic": 4,
     "pipeline": 5, "export": 5,
     "report": 6, "hloc": 6,
     "bench": 7, "demo": 7,
