@@ -122,6 +122,8 @@ def update_features(conf: ExtractConfig, images: ImageSet, out_dir: Path, *, exe
     if setting is not None:
         raise SettingsChangedError(f"{out_dir} holds features made with other extraction settings: {setting}; use "
                                    "another output folder or --overwrite to extract them again")
+    if not any(old_digests.get(name) == digest for name, digest in digests.items()):
+        return None  # no image in common: another collection, which the extract stage refuses
     current = ledger(out_dir)
     if current.get("key") != key or current.get("phase") != "features":
         current = _plan(out_dir, conf, info, digests, key)
@@ -155,9 +157,12 @@ def _plan(out_dir: Path, conf: ExtractConfig, info: dict[str, Any], digests: dic
     main = (work / MODEL_NAME) if carried else (out_dir / "sparse" / "0")
     if colmap.has_model(main) and change.to_drop:
         pruned = work / (MODEL_NAME + ".partial")
-        colmap.prune_model(main, set(change.to_drop), pruned)
+        left = colmap.prune_model(main, set(change.to_drop), pruned)
         _remove(work / MODEL_NAME)
-        pruned.rename(work / MODEL_NAME)
+        if left >= 2:  # else nothing to continue from: the update maps from the database
+            pruned.rename(work / MODEL_NAME)
+        else:
+            _remove(pruned)
     elif colmap.has_model(main) and not carried:
         shutil.copytree(main, work / MODEL_NAME)
     colmap.copy_database(out_dir / extract.DB_NAME, work / extract.DB_NAME)
