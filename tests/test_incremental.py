@@ -11,9 +11,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from harness import assert_error, assert_ok, registered, sara_process, signal_when
 from PIL import Image
 
+from harness import assert_error, assert_ok, registered, sara_process, signal_when
 from sara import colmap
 from sara.io.h5 import list_names
 

@@ -113,6 +113,8 @@ def update_features(conf: ExtractConfig, images: ImageSet, out_dir: Path, *, exe
         return None
     key, digests, save_digests = extract.stage_key(images, conf, out_dir, progress=progress)
     if record.get("key") == key or digests is None:
+        if ledger(out_dir).get("phase") == "features":  # images back as they were: the copies are not needed
+            discard(out_dir)
         return None
     info = record.get("info", {})
     old_settings, old_digests = info.get("settings"), info.get("images")
@@ -231,11 +233,11 @@ def _write_features(out_dir: Path, conf: ExtractConfig, images: ImageSet, change
     keep = set(colmap.images_with_keypoints(db)) - set(change.to_extract)
     with atomic_path(work / name) as tmp, h5py.File(tmp, "w") as new, h5py.File(out_dir / name, "r") as old:
         for image in sorted(keep):
-            old.copy(old[image], new, name=image)
+            _copy_group(old, new, image)
         if extracted:
             with h5py.File(extracted["path"], "r") as added:
                 for image in extracted["names"]:
-                    added.copy(added[image], new, name=image)
+                    _copy_group(added, new, image)
             return
         with colmap.FeatureReader(db) as reader:
             for image, image_id in sorted(reader.image_ids().items()):
@@ -245,6 +247,12 @@ def _write_features(out_dir: Path, conf: ExtractConfig, images: ImageSet, change
                 write_features(new, image, Features(keypoints=colmap.colmap_to_hloc_keypoints(kp),
                                                     descriptors=extract.hloc_descriptors(desc), scores=scale,
                                                     image_size=images.sizes[image]))
+
+
+def _copy_group(src: h5py.File, dst: h5py.File, name: str) -> None:
+    """Copy the group of image `name` (a path with `/` for images in subfolders)."""
+    parent = name.rpartition("/")[0]
+    src.copy(src[name], dst.require_group(parent) if parent else dst, name=name.rpartition("/")[2])
 
 
 def _new_info(out_dir: Path, info: dict[str, Any], digests: dict[str, str], extracted: int,
