@@ -35,7 +35,7 @@ from .config import ExtractConfig
 from .execute import Executor
 from .features import features_file_name, make_backend
 from .io import atomic_path, records
-from .io.h5 import Features, write_features
+from .io.h5 import Features, has_features, write_features
 from .io.images import ImageSet, set_aside
 from .io.pairs import Pair, read_pairs
 
@@ -187,7 +187,7 @@ def _remove(path: Path) -> None:
 def _update_copies(conf: ExtractConfig, images: ImageSet, out_dir: Path, change: Change, info: dict[str, Any],
                    executor: Executor | None, progress: bool) -> int:
     """Delete the images that go from the database copy, import and extract those that come, and
-    write the new features file beside it; returns the number of images extracted."""
+    write the new features file beside it; returns the number of images the update extracts."""
     work = _work(out_dir)
     db = work / extract.DB_NAME
     colmap.delete_images(db, change.to_drop)
@@ -203,11 +203,14 @@ def _update_copies(conf: ExtractConfig, images: ImageSet, out_dir: Path, change:
         extracted: dict[str, Any] = {}
     else:
         added_h5 = work / "added.h5"
-        counts, _ = extract.extract_to_h5(backend, conf, readable, added_h5, executor, progress)
-        extracted = {"path": added_h5, "names": sorted(counts)}
-        extract.import_keypoints(db, added_h5, sorted(counts))
+        if not added_h5.exists():  # else extracted before a kill: `extract_to_h5` renames it when complete
+            extract.extract_to_h5(backend, conf, readable, added_h5, executor, progress)
+        with h5py.File(added_h5, "r") as h5:
+            done = sorted(n for n in readable.names if has_features(h5, n))
+        extracted = {"path": added_h5, "names": done}
+        extract.import_keypoints(db, added_h5, done)
     _write_features(out_dir, conf, images, change, extracted)
-    return len(todo)
+    return len(readable.names)  # over every attempt: a killed update resumed counts them once
 
 
 def _import(db: Path, images: ImageSet, names: list[str], conf: ExtractConfig, info: dict[str, Any]) -> None:
@@ -230,7 +233,8 @@ def _write_features(out_dir: Path, conf: ExtractConfig, images: ImageSet, change
     file, the new images' from the database copy (SIFT) or from the new images' own file."""
     work, name = _work(out_dir), features_file_name(conf)
     db = work / extract.DB_NAME
-    keep = set(colmap.images_with_keypoints(db)) - set(change.to_extract)
+    with_keypoints = colmap.images_with_keypoints(db)
+    keep = with_keypoints - set(change.to_extract)
     with atomic_path(work / name) as tmp, h5py.File(tmp, "w") as new, h5py.File(out_dir / name, "r") as old:
         for image in sorted(keep):
             _copy_group(old, new, image)
@@ -241,7 +245,7 @@ def _write_features(out_dir: Path, conf: ExtractConfig, images: ImageSet, change
             return
         with colmap.FeatureReader(db) as reader:
             for image, image_id in sorted(reader.image_ids().items()):
-                if image in keep:
+                if image in keep or image not in with_keypoints:
                     continue
                 kp, scale, desc = reader.read_sift(image_id)
                 write_features(new, image, Features(keypoints=colmap.colmap_to_hloc_keypoints(kp),
