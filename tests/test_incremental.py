@@ -128,11 +128,12 @@ def test_changed_extraction_settings_are_refused_with_the_setting_named(scene, c
     assert not (out / ".sara" / "update").exists()
 
 
-@pytest.mark.parametrize("marker", ["update.json", "pairs.next"])
-def test_killed_update_then_rerun_gives_the_uninterrupted_result(marker, scene, copy_of_first, tmp_path):
-    """SIGKILL once the update's ledger exists (copies made, nothing extracted yet), or once the
-    kept pairs are taken over (features swapped in), then the same command: the same result as an
-    update never stopped."""
+@pytest.mark.parametrize("marker", ["update.json", "pairs.next", "swap"])
+def test_killed_update_then_rerun_gives_the_uninterrupted_result(marker, scene, copy_of_first, tmp_path, monkeypatch,
+                                                                 run_cli):
+    """Stopped once the update's ledger exists (copies made, nothing extracted yet), between the
+    swap of the features file and that of the database, or once the pairs are being selected
+    (features swapped in), then the same command: the same result as an update never stopped."""
     images, out = copy_of_first
     reference = Path(shutil.copytree(out, tmp_path / "reference", symlinks=True))
     new = sorted(os.listdir(scene))[NUM_FIRST:]
@@ -140,9 +141,20 @@ def test_killed_update_then_rerun_gives_the_uninterrupted_result(marker, scene, 
     (images / sorted(os.listdir(images))[0]).unlink()
     assert_ok(sara_process("run", images, reference, "-q"))
     cmd = ["run", images, out, "-q"]
-    result = signal_when(cmd, out / ".sara" / marker, signal.SIGKILL)
-    if result.code == 0:
-        pytest.skip("the run finished before the kill")
+    if marker == "swap":  # in this process: SIGKILL cannot be timed between two renames
+        from sara import incremental
+
+        def killed(*args: object) -> None:
+            raise SystemExit(137)
+
+        monkeypatch.setattr(incremental.colmap, "replace_database", killed)
+        assert run_cli(*cmd).code != 0
+        monkeypatch.undo()
+        assert json.loads((out / ".sara" / "update.json").read_text())["info"]["phase"] == "swap"
+    else:
+        result = signal_when(cmd, out / ".sara" / marker, signal.SIGKILL)
+        if result.code == 0:
+            pytest.skip("the run finished before the kill")
     assert_ok(sara_process(*cmd))
     assert _state(out) == _state(reference)
     assert not (out / ".sara" / "update").exists()

@@ -145,7 +145,8 @@ def _plan(out_dir: Path, conf: ExtractConfig, info: dict[str, Any], digests: dic
     images that go (those an unfinished earlier update kept, when there is one), write the ledger."""
     work = _work(out_dir)
     pending = ledger(out_dir)
-    carried = pending.get("phase") == "extracted" and work.is_dir()
+    # an earlier update not finished (images changed again meanwhile): its kept pairs and model go on
+    carried = pending.get("phase") in ("features", "extracted") and "paired_images" in pending and work.is_dir()
     paired = pending.get("paired_images") if carried else info["images"]
     change = compare(info["images"], digests)
     for name in os.listdir(work) if work.is_dir() else []:
