@@ -113,6 +113,7 @@ def update_features(conf: ExtractConfig, images: ImageSet, out_dir: Path, *, exe
         return None
     key, digests, save_digests = extract.stage_key(images, conf, out_dir, progress=progress)
     if record.get("key") == key or digests is None:
+        save_digests()  # the key holds: the extract stage need not read the images again
         if ledger(out_dir).get("phase") == "features":  # images back as they were: the copies are not needed
             discard(out_dir)
         return None
