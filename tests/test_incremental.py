@@ -128,18 +128,32 @@ def test_changed_extraction_settings_are_refused_with_the_setting_named(scene, c
     assert not (out / ".sara" / "update").exists()
 
 
+def _changed_folder(scene: Path, images: Path) -> Path:
+    """The change of the kill tests: the two views added, the first one removed."""
+    _folder(scene, images, sorted(os.listdir(scene))[NUM_FIRST:])
+    (images / sorted(os.listdir(images))[0]).unlink()
+    return images
+
+
+@pytest.fixture(scope="module")
+def uninterrupted(scene, first_run, tmp_path_factory) -> dict:
+    """The state an update never stopped leaves (`_state`)."""
+    images, out = first_run
+    base = tmp_path_factory.mktemp("inc_reference")
+    images = _changed_folder(scene, Path(shutil.copytree(images, base / "images")))
+    reference = Path(shutil.copytree(out, base / "out", symlinks=True))
+    assert_ok(sara_process("run", images, reference, "-q"))
+    return _state(reference)
+
+
 @pytest.mark.parametrize("marker", ["update.json", "pairs.next", "swap"])
-def test_killed_update_then_rerun_gives_the_uninterrupted_result(marker, scene, copy_of_first, tmp_path, monkeypatch,
-                                                                 run_cli):
+def test_killed_update_then_rerun_gives_the_uninterrupted_result(marker, scene, copy_of_first, uninterrupted,
+                                                                 monkeypatch, run_cli):
     """Stopped once the update's ledger exists (copies made, nothing extracted yet), between the
     swap of the features file and that of the database, or once the pairs are being selected
     (features swapped in), then the same command: the same result as an update never stopped."""
     images, out = copy_of_first
-    reference = Path(shutil.copytree(out, tmp_path / "reference", symlinks=True))
-    new = sorted(os.listdir(scene))[NUM_FIRST:]
-    _folder(scene, images, new)
-    (images / sorted(os.listdir(images))[0]).unlink()
-    assert_ok(sara_process("run", images, reference, "-q"))
+    _changed_folder(scene, images)
     cmd = ["run", images, out, "-q"]
     if marker == "swap":  # in this process: SIGKILL cannot be timed between two renames
         from sara import incremental
@@ -156,5 +170,5 @@ def test_killed_update_then_rerun_gives_the_uninterrupted_result(marker, scene, 
         if result.code == 0:
             pytest.skip("the run finished before the kill")
     assert_ok(sara_process(*cmd))
-    assert _state(out) == _state(reference)
+    assert _state(out) == uninterrupted
     assert not (out / ".sara" / "update").exists()
