@@ -81,22 +81,28 @@ _LATER_SETTINGS = {"estimate_focal": True}
 DIGESTS_NAME = "image-digests.json"
 
 
-def _key(images: ImageSet, conf: ExtractConfig, out_dir: Path, *,
-         progress: bool = True) -> tuple[str, Callable[[], None]]:
-    """(the stage key: the images' names and contents and the settings, a function that saves the
-    images' digests for the next run: to call once the key is accepted).
+def settings_of(conf: ExtractConfig) -> dict:
+    """The extraction settings that key the features (those added later drop out at their default)."""
+    return {k: v for k, v in conf.__dict__.items() if not (k in _LATER_SETTINGS and v == _LATER_SETTINGS[k])}
+
+
+def stage_key(images: ImageSet, conf: ExtractConfig, out_dir: Path, *,
+              progress: bool = True) -> tuple[str, dict[str, str] | None, Callable[[], None]]:
+    """(the stage key: the images' names and contents and the settings, the digest of each image
+    (None when an earlier sara's key still holds), a function that saves the images' digests for
+    the next run: to call once the key is accepted).
 
     Features made by an earlier sara, keyed by the images' sizes and modification times, keep
     that key while those are unchanged.
     """
-    settings = {k: v for k, v in conf.__dict__.items() if not (k in _LATER_SETTINGS and v == _LATER_SETTINGS[k])}
+    settings = settings_of(conf)
     record = records.read_record(out_dir, STAGE)
     if record is not None and record.get("key") == fingerprint({"images": images.fingerprint_data(), "conf": settings}):
-        return record["key"], lambda: None
+        return record["key"], None, lambda: None
     cache = out_dir / ".sara" / DIGESTS_NAME
     digests, entries = content_digests(images, cache, progress=progress)
     key = fingerprint({"images": [[name, digests[name]] for name in images.names], "conf": settings})
-    return key, lambda: save_digests(cache, entries)
+    return key, digests, lambda: save_digests(cache, entries)
 
 
 def _check_existing_database(db_path: Path, images: ImageSet) -> bool:
@@ -124,7 +130,7 @@ def run(conf: ExtractConfig, images: ImageSet, out_dir: Path, *, executor: Execu
     """
     out_dir = Path(out_dir)
     db_path, h5_path = out_dir / DB_NAME, out_dir / features_file_name(conf)
-    key, save_digests_ = _key(images, conf, out_dir, progress=progress)
+    key, digests, save_digests_ = stage_key(images, conf, out_dir, progress=progress)
     tic = time.perf_counter()
     if not overwrite and records.is_done(out_dir, STAGE, key) and _outputs_intact(out_dir, db_path, h5_path):
         logger.info("extract: features up to date, skipping")
@@ -144,8 +150,8 @@ def run(conf: ExtractConfig, images: ImageSet, out_dir: Path, *, executor: Execu
         _partial(h5_path).unlink(missing_ok=True)
     save_digests_()
     uses_colmap_reader = hasattr(backend, "extract_to_database")
-    unreadable = _unreadable(images, progress) if uses_colmap_reader else {}
-    readable = set_aside(images, unreadable)
+    cannot_read = unreadable(images, progress) if uses_colmap_reader else {}
+    readable = set_aside(images, cannot_read)
     if db_path.exists() and not _check_existing_database(db_path, readable):
         colmap.remove_database(db_path)  # images were being imported when the run stopped: importing is cheap
     records.mark_started(out_dir, STAGE, key)
@@ -162,15 +168,16 @@ def run(conf: ExtractConfig, images: ImageSet, out_dir: Path, *, executor: Execu
         readable = set_aside(readable, failed)
         counts = _export_h5(db_path, h5_path, readable, progress)
     else:
-        counts, failed = _extract_to_h5(backend, conf, readable, h5_path, executor, progress)
+        counts, failed = extract_to_h5(backend, conf, readable, h5_path, executor, progress)
         readable = set_aside(readable, failed)
-        _import_keypoints(db_path, h5_path, readable.names)
-    info = _summary(counts)
+        import_keypoints(db_path, h5_path, readable.names)
+    info = summarize(counts)
     if conf.estimate_focal and camera_mode == "single" and not conf.camera_params:
         info["focal"] = _check_focal(db_path, h5_path, readable.names)
     info.update(camera_mode=camera_mode, backend=conf.backend, features=h5_path.name,
-                skipped={**unreadable, **failed}, time_s=time.perf_counter() - tic)
-    records.mark_done(out_dir, STAGE, key, info, outputs=_outputs(db_path, h5_path))
+                skipped={**cannot_read, **failed}, time_s=time.perf_counter() - tic,
+                settings=settings_of(conf), images=digests)
+    records.mark_done(out_dir, STAGE, key, info, outputs=recorded(db_path, h5_path))
     return h5_path
 
 
@@ -205,7 +212,7 @@ def usable(images: ImageSet, out_dir: Path, *, warn: bool = False) -> ImageSet:
     return set_aside(images, {n: r for n, r in skipped.items() if n in images.sizes}, warn=warn)
 
 
-def _outputs(db_path: Path, h5_path: Path) -> dict:
+def recorded(db_path: Path, h5_path: Path) -> dict:
     summary = colmap.database_summary(db_path) or {}
     return {h5_path.name: features_digest(h5_path),
             DB_NAME: {k: summary.get(k) for k in ("num_images", "num_images_with_keypoints", "keypoints_digest")}}
@@ -254,7 +261,7 @@ def _new_database(db_path: Path, images: ImageSet, conf: ExtractConfig, camera_m
                              default_focal_length_factor=conf.default_focal_length_factor)
 
 
-def _unreadable(images: ImageSet, progress: bool) -> dict[str, str]:
+def unreadable(images: ImageSet, progress: bool) -> dict[str, str]:
     """Images that COLMAP's reader (the one its SIFT extraction uses) cannot decode: name -> why."""
     out = {}
     for name in tqdm(images.names, desc="check images (COLMAP)", unit="img", disable=not progress):
@@ -354,7 +361,7 @@ def _extract_images(job: _ExtractJob) -> list[Keypoints | str]:
 EXTRACT_CHUNK = 8
 
 
-def _extract_to_h5(backend: LocalFeatures, conf: ExtractConfig, images: ImageSet, h5_path: Path,
+def extract_to_h5(backend: LocalFeatures, conf: ExtractConfig, images: ImageSet, h5_path: Path,
                    executor: Executor | None, progress: bool) -> tuple[dict[str, int], dict[str, str]]:
     """Run a pixel backend over every image into `h5_path`, resumably (a `.partial` file grows
     chunk by chunk and is renamed when complete). Returns keypoints per image, and the images that
@@ -392,7 +399,7 @@ def _extract_to_h5(backend: LocalFeatures, conf: ExtractConfig, images: ImageSet
     return counts, failed
 
 
-def _import_keypoints(db_path: Path, h5_path: Path, names: list[str]) -> None:
+def import_keypoints(db_path: Path, h5_path: Path, names: list[str]) -> None:
     """Put the keypoints of `h5_path` into the database (COLMAP's pixel convention)."""
     missing = set(names) - colmap.images_with_keypoints(db_path)
     if not missing:
@@ -425,7 +432,7 @@ def hloc_descriptors(desc: np.ndarray) -> np.ndarray:
     return l2_normalize(desc, axis=1).astype(np.float16)
 
 
-def _summary(num_kp: dict[str, int]) -> dict:
+def summarize(num_kp: dict[str, int]) -> dict:
     no_features = sorted(n for n, k in num_kp.items() if k == 0)
     for name in no_features:
         logger.warning("no features found in %s (flat or featureless image): it cannot be registered", name)

@@ -71,14 +71,16 @@ def test_damaged_state_is_refused(case, finished_run, images, run_cli):
 def test_other_extraction_settings_refused(finished_run, images, run_cli):
     before = snapshot(finished_run)
     result = run_cli("run", images, finished_run, "-q", "-s", "extract.max_num_features=1000")
-    assert_error(result, 3, "other images or other extraction settings", "--overwrite")
+    assert_error(result, 3, "other extraction settings", "extract.max_num_features", "--overwrite")
     assert_kept(before, finished_run)
 
 
 def test_other_image_folder_refused(finished_run, images, tmp_path, run_cli):
-    other = tmp_path / "more_images"
-    shutil.copytree(images, other)
-    shutil.copyfile(other / sorted(os.listdir(other))[0], other / "extra.png")
+    """A folder sharing no image with the run's is not an update of it (tests/test_incremental.py)."""
+    other = tmp_path / "other_images"
+    other.mkdir()
+    for k, name in enumerate(sorted(os.listdir(images))):
+        shutil.copyfile(images / name, other / f"other-{k}.png")
     before = snapshot(finished_run)
     result = run_cli("run", other, finished_run, "-q")
     assert_error(result, 3, "other images")

@@ -42,6 +42,7 @@ from .database_queries import (
     verified_graph,
     verified_inliers,
 )
+from .edit import delete_images, prune_model
 from .geometry import (
     CameraInfo,
     colmap_to_hloc_keypoints,
@@ -80,6 +81,7 @@ __all__ = [
     "create_database",
     "database_images",
     "database_summary",
+    "delete_images",
     "delete_pairs_except",
     "estimate_fundamental",
     "extract_sift",
@@ -99,6 +101,7 @@ __all__ = [
     "match_pairs",
     "mean_focal_px",
     "quiet_signals_in_worker",
+    "prune_model",
     "read_summary",
     "registered_images",
     "remove_database",

@@ -84,9 +84,13 @@ def replace_database(src: Path, dst: Path) -> None:
 
 
 def import_images(db_path: Path, image_dir: Path, names: list[str], *, camera_mode: str, camera_model: str,
-                  camera_params: str = "", default_focal_length_factor: float = 1.2) -> None:
-    """Add images and their cameras to the database (no features yet)."""
+                  camera_params: str = "", default_focal_length_factor: float = 1.2,
+                  existing_camera_id: int | None = None) -> None:
+    """Add images and their cameras to the database (no features yet); with `existing_camera_id`,
+    the images share that camera of the database instead."""
     opts = pycolmap.ImageReaderOptions()
+    if existing_camera_id is not None:
+        opts.existing_camera_id = existing_camera_id
     opts.camera_model = camera_model
     opts.camera_params = camera_params
     opts.default_focal_length_factor = default_focal_length_factor

@@ -46,6 +46,20 @@ class PairResult:
 
 
 @dataclass
+class Extension:
+    """An earlier selection to extend for images added to (or changed in) the collection.
+
+    kept_pairs: the earlier pairs between images that stay unchanged (already matched);
+    new_names: the images that need pairs; scores_path: the earlier selection's scores file, if
+    any (its candidates between kept images need no scoring again).
+    """
+
+    kept_pairs: list[Pair]
+    new_names: list[str]
+    scores_path: Path | None = None
+
+
+@dataclass
 class Round:
     """Pairs a round asks to match, and the role the report gives them."""
 
@@ -117,6 +131,7 @@ class PairSource:
     sections: Callable[[PipelineConfig], tuple[str, ...]] = _only_pairs_section
     caches: tuple[str, ...] = ()
     rounds: Rounds | None = None
+    extend: Callable[[PairContext, Extension], PairResult] | None = None
 
     def __call__(self, ctx: PairContext) -> PairResult:
         return self.select(ctx)

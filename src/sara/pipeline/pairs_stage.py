@@ -15,13 +15,13 @@ import time
 from pathlib import Path
 from typing import Any
 
-from .. import extract
+from .. import extract, incremental
 from ..config import PipelineConfig
 from ..execute import Executor
 from ..io import DamagedOutputError, NoResultError, file_digest, fingerprint, records
 from ..io.images import ImageSet
 from ..io.pairs import read_pairs, write_pairs
-from ..pairs import SOURCES, PairContext, PairSource, get_source
+from ..pairs import SOURCES, Extension, PairContext, PairSource, get_source
 from . import rounds
 
 logger = logging.getLogger(__name__)
@@ -97,7 +97,8 @@ def run(conf: PipelineConfig, images: ImageSet, features_path: Path, out_dir: Pa
             _seed_caches(source, out_dir, staging)
             ctx = pair_context(conf, images, features_path, out_dir, executor=executor, progress=progress,
                                work_dir=staging)
-            result = source(ctx)
+            extension = _extension(source, out_dir)
+            result = source.extend(ctx, extension) if extension is not None else source(ctx)
             pairs, info, why_empty = result.pairs, {**result.info, "timings_s": result.timings_s}, result.why_empty
         if not pairs:
             raise NoResultError(_no_pairs_reason(method, source_file, why_empty, len(images.names), out_dir))
@@ -112,6 +113,16 @@ def run(conf: PipelineConfig, images: ImageSet, features_path: Path, out_dir: Pa
     outputs = {name: file_digest(out_dir / name) for name in [PAIRS_NAME, *produced] if name in _TRACKED_PAIR_FILES}
     records.mark_done(out_dir, STAGE, key, info, outputs=outputs)
     return pairs_path
+
+
+def _extension(source: PairSource, out_dir: Path) -> Extension | None:
+    """The earlier selection to extend, when an incremental update awaits its pairs and the source
+    can extend one (None: select all pairs)."""
+    update = incremental.pending(out_dir, (records.read_record(out_dir, extract.STAGE) or {}).get("key", ""))
+    if source.extend is None or update is None:
+        return None
+    kept, new_names, scores_path = incremental.kept_pairs(out_dir, update)
+    return Extension(kept, new_names, scores_path) if kept else None
 
 
 def _seed_caches(source: PairSource, out_dir: Path, staging: Path) -> None:

@@ -106,6 +106,12 @@ def render_report(report: RunReport) -> str:
     lines = [f"# sara run: {report.out_dir.name}", "",
              f"Images: {s['images']['num_images']} used, {s['images']['num_skipped']} skipped "
              f"(from `{report.images_root}`)", "", markdown_table(["stage", "time (s)", "result"], rows)]
+    update = s.get("update")
+    if update:
+        lines += ["", f"Update: {update['num_added']} images added, {update['num_removed']} removed, "
+                      f"{update['num_changed']} changed since the previous run; {update['num_extracted']} extracted, "
+                      f"{update.get('num_pairs_scored', 0)} pairs scored, {update.get('num_pairs_matched', 0)} "
+                      "pairs matched"]
     if report.skipped_images:
         lines += ["", "Skipped images:", ""] + [f"- `{n}`: {r}" for n, r in report.skipped_images.items()]
     if report.metrics:

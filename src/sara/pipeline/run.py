@@ -10,7 +10,7 @@ import logging
 from pathlib import Path
 from typing import Any
 
-from .. import colmap, extract, mapping, match, weights
+from .. import colmap, extract, incremental, mapping, match, weights
 from ..config import PipelineConfig
 from ..execute import Executor, make_executor
 from ..features import BACKENDS as FEATURE_BACKENDS
@@ -67,6 +67,10 @@ def _run_stages(conf: PipelineConfig, images: ImageSet, images_root: Path, out_d
     colmap.send_log_to(out_dir / "logs", verbose=verbose_colmap)
     colmap.set_seed(conf.seed)
     first_run = not (out_dir / "run.json").exists()
+    if overwrite:
+        incremental.discard(out_dir)
+    else:  # images added, removed or changed since the last run: only they are extracted
+        incremental.update_features(conf.extract, images, out_dir, executor=executor, progress=progress)
     features = extract.run(conf.extract, images, out_dir, executor=executor, overwrite=overwrite, progress=progress)
     images = extract.usable(images, out_dir)
     report = RunReport(out_dir, images_root, conf.to_dict(), skipped_images=images.skipped)
@@ -90,11 +94,17 @@ def _run_stages(conf: PipelineConfig, images: ImageSet, images_root: Path, out_d
     staged = None
     if source_rounds is not None:
         work, staged = rounds.before_mapping(source_rounds, work)
+    extract_key = (records.read_record(out_dir, extract.STAGE) or {}).get("key", "")
+    start = incremental.start_model(out_dir, extract_key) if conf.rounds.extend_model else None
     map_model(conf, images.root, out_dir, db_path=work, progress=progress, overwrite=overwrite,
-              commit_round=(lambda: rounds.commit_staged(source_rounds, staged)) if staged else None)
+              commit_round=(lambda: rounds.commit_staged(source_rounds, staged)) if staged else None,
+              input_model=start)
     if source_rounds is not None:
         rounds.after_mapping(source_rounds)
     collect_stages(report, pairs_stage.current_key(conf, out_dir))
+    update = incremental.finish(out_dir, extract_key, _update_counts(out_dir, extract_key))
+    if update is not None:
+        report.stages["update"] = update
     if gt_dir is not None:
         from ..evaluation import evaluate
 
@@ -114,6 +124,19 @@ def _rounds_run(conf: PipelineConfig, images: ImageSet, features: Path, out_dir:
     return rounds.RoundsRun(source.rounds, ctx, conf, out_dir, pairs_stage.current_key(conf, out_dir), progress)
 
 
+def _update_counts(out_dir: Path, extract_key: str) -> dict[str, int]:
+    """What a pending incremental update redid after extraction: pairs scored and matched."""
+    update = incremental.pending(out_dir, extract_key)
+    if update is None:
+        return {}
+    kept, _, _ = incremental.kept_pairs(out_dir, update)
+    selected = records.done_info(out_dir, pairs_stage.STAGE)
+    scored = selected.get("num_candidates_scored", selected.get("num_candidates", 0))
+    final = {tuple(sorted(p)) for p in read_pairs(out_dir / pairs_stage.PAIRS_NAME)}
+    return {"num_pairs_scored": scored, "num_pairs_kept": len(kept),
+            "num_pairs_matched": len(final - {tuple(sorted(p)) for p in kept})}
+
+
 def match_pairs(conf: PipelineConfig, pairs_path: Path, features_path: Path, out_dir: Path, *,
                 executor: Executor | None = None, progress: bool = True, beside: bool = False,
                 overwrite: bool = False) -> Path:
@@ -125,11 +148,12 @@ def match_pairs(conf: PipelineConfig, pairs_path: Path, features_path: Path, out
 
 
 def map_model(conf: PipelineConfig, images_root: Path, out_dir: Path, *, db_path: Path | None = None,
-              progress: bool = True, overwrite: bool = False, commit_round: Any = None) -> Path:
+              progress: bool = True, overwrite: bool = False, commit_round: Any = None,
+              input_model: Path | None = None) -> Path:
     """Stage `map` on the matches of `db_path` (default the output's database; a copy made by the
     match stage is moved into place just before the new model, with `commit_round`, the pairs a
     round matched before mapping); returns `sparse/`. A failed mapping keeps the previous
-    matches and model."""
+    matches and model. `input_model`: a model to continue from (an incremental update's)."""
     db = out_dir / extract.DB_NAME
     work = Path(db_path or db)
     upstream = fingerprint(match.matches_digest(work))
@@ -142,7 +166,7 @@ def map_model(conf: PipelineConfig, images_root: Path, out_dir: Path, *, db_path
     try:
         return mapping.run(conf.map, work, images_root, out_dir, seed=conf.seed, upstream_key=upstream,
                            progress=progress, min_num_inliers=conf.match.min_num_inliers, commit=commit,
-                           overwrite=overwrite)
+                           overwrite=overwrite, input_model=input_model)
     except NoResultError:
         if work != db:
             colmap.remove_database(work)  # the previous matches stay with the previous model

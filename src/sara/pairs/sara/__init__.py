@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from ...config import PipelineConfig
 from .. import PairSource
+from .extend import extend
 from .rounds import SaraRounds
 from .source import select
 
@@ -19,4 +20,5 @@ def _sections(conf: PipelineConfig) -> tuple[str, ...]:
     return ("pairs", "retrieval", "sequence", "score", "graph", "budget", "rounds")
 
 
-SOURCE = PairSource(select=select, sections=_sections, caches=("global-*.h5",), rounds=SaraRounds())
+SOURCE = PairSource(select=select, sections=_sections, caches=("global-*.h5",), rounds=SaraRounds(),
+                    extend=extend)

@@ -1,0 +1,351 @@
+"""Incremental updates: an output folder whose images were added, removed or changed since its run.
+
+The extract stage keeps the digest of every image it was made from (its record's `images`). When
+the image folder no longer matches them and the extraction settings are the same, the update:
+
+1. plans: which images were added, removed or changed (removed, then added under the same name);
+   copies the database into `.sara/update/`, and keeps the run's pairs, scores and main model
+   there without the images that go (`pairs.txt`, `scores.csv`, `model/`);
+2. updates the copy: deletes the images that go (features, matches, geometries), imports and
+   extracts only the images that come, and writes the new features file beside it;
+3. swaps the copies in and records the extract stage as done for the new images;
+4. the later stages then continue from what was kept: the pair source pairs only the new images
+   (`sara.pairs.Extension`), the match stage matches only the pairs not yet matched, and the
+   mapper continues from the kept model (`start_model`), so only new work is done.
+
+Its ledger (the `update` record) names the phase reached, so a run killed at any moment resumes
+with the same command: before the swap the folder's own files are untouched; the swap finishes on
+the next run whatever the images are then; afterwards each stage resumes by its own record.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import shutil
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import h5py
+
+from . import colmap, extract
+from .config import ExtractConfig
+from .execute import Executor
+from .features import features_file_name, make_backend
+from .io import atomic_path, records
+from .io.h5 import Features, has_features, write_features
+from .io.images import ImageSet, set_aside
+from .io.pairs import Pair, read_pairs
+
+logger = logging.getLogger(__name__)
+
+STAGE = "update"
+WORK = "update"
+PAIRS_NAME, SCORES_NAME, MODEL_NAME = "pairs.txt", "scores.csv", "model"
+
+
+@dataclass(frozen=True)
+class Change:
+    """How a collection differs from the one a run was made from (sorted image names)."""
+
+    added: list[str]
+    removed: list[str]
+    changed: list[str]
+
+    @property
+    def to_drop(self) -> list[str]:
+        return sorted(self.removed + self.changed)
+
+    @property
+    def to_extract(self) -> list[str]:
+        return sorted(self.added + self.changed)
+
+    def counts(self) -> dict[str, int]:
+        return {"num_added": len(self.added), "num_removed": len(self.removed), "num_changed": len(self.changed)}
+
+
+def compare(old: dict[str, str], new: dict[str, str]) -> Change:
+    """The images of `new` (name -> content digest) that `old` lacks, the reverse, and those whose
+    content differs."""
+    return Change(added=sorted(set(new) - set(old)), removed=sorted(set(old) - set(new)),
+                  changed=sorted(n for n in set(old) & set(new) if old[n] != new[n]))
+
+
+class SettingsChangedError(extract.OutputMismatchError):
+    """The features of an output folder were made with other extraction settings."""
+
+
+def changed_setting(old: dict[str, Any], new: dict[str, Any]) -> str | None:
+    """`extract.NAME (old -> new)` of the first setting that differs, None when all agree."""
+    for name in sorted(set(old) | set(new)):
+        if old.get(name) != new.get(name):
+            return f"extract.{name} ({old.get(name)!r} -> {new.get(name)!r})"
+    return None
+
+
+def _work(out_dir: Path) -> Path:
+    return Path(out_dir) / ".sara" / WORK
+
+
+def ledger(out_dir: Path) -> dict[str, Any]:
+    """The update's record: key (the extract key it leads to), phase and counts ({} when none)."""
+    record = records.read_record(out_dir, STAGE) or {}
+    return {**record.get("info", {}), "key": record.get("key")} if record else {}
+
+
+def _save(out_dir: Path, key: str, info: dict[str, Any]) -> None:
+    records.mark_done(out_dir, STAGE, key, {k: v for k, v in info.items() if k != "key"})
+
+
+def update_features(conf: ExtractConfig, images: ImageSet, out_dir: Path, *, executor: Executor | None = None,
+                    progress: bool = True) -> dict[str, Any] | None:
+    """Bring the features of an output folder up to date with `images`, extracting only the images
+    added or changed since its run; returns the update's ledger (None: nothing to update here,
+    the extract stage decides). Raises SettingsChangedError, naming the setting, when the
+    extraction settings differ."""
+    out_dir = Path(out_dir)
+    if ledger(out_dir).get("phase") == "swap":
+        _swap_in(out_dir)  # a run killed while swapping: finish it whatever the images are now
+    record = records.read_record(out_dir, extract.STAGE)
+    if record is None or record.get("done") is not True or not (out_dir / extract.DB_NAME).exists():
+        return None
+    key, digests, save_digests = extract.stage_key(images, conf, out_dir, progress=progress)
+    if record.get("key") == key or digests is None:
+        save_digests()  # the key holds: the extract stage need not read the images again
+        if ledger(out_dir).get("phase") == "features":  # images back as they were: the copies are not needed
+            discard(out_dir)
+        return None
+    info = record.get("info", {})
+    old_settings, old_digests = info.get("settings"), info.get("images")
+    if old_settings is None or old_digests is None:
+        return None  # made by an earlier sara: the extract stage refuses, as it did then
+    setting = changed_setting(old_settings, extract.settings_of(conf))
+    if setting is not None:
+        raise SettingsChangedError(f"{out_dir} holds features made with other extraction settings: {setting}; use "
+                                   "another output folder or --overwrite to extract them again")
+    if not any(old_digests.get(name) == digest for name, digest in digests.items()):
+        return None  # no image in common: another collection, which the extract stage refuses
+    current = ledger(out_dir)
+    if current.get("key") != key or current.get("phase") != "features":
+        current = _plan(out_dir, conf, info, digests, key)
+    tic = time.perf_counter()
+    extracted = _update_copies(conf, images, out_dir, compare(old_digests, digests), info, executor, progress)
+    current.update(phase="swap", num_extracted=extracted, extract_time_s=time.perf_counter() - tic,
+                   extract_info=_new_info(out_dir, info, digests, extracted, time.perf_counter() - tic))
+    _save(out_dir, key, current)
+    _swap_in(out_dir)
+    save_digests()
+    return ledger(out_dir)
+
+
+def _plan(out_dir: Path, conf: ExtractConfig, info: dict[str, Any], digests: dict[str, str],
+          key: str) -> dict[str, Any]:
+    """Start an update: copy the database, keep the run's pairs, scores and main model without the
+    images that go (those an unfinished earlier update kept, when there is one), write the ledger."""
+    work = _work(out_dir)
+    pending = ledger(out_dir)
+    # an earlier update not finished (images changed again meanwhile): its kept pairs and model go on
+    carried = pending.get("phase") in ("features", "extracted") and "paired_images" in pending and work.is_dir()
+    paired = pending.get("paired_images") if carried else info["images"]
+    change = compare(info["images"], digests)
+    for name in os.listdir(work) if work.is_dir() else []:
+        if not (carried and name in (PAIRS_NAME, SCORES_NAME, MODEL_NAME)):
+            _remove(work / name)
+    work.mkdir(parents=True, exist_ok=True)
+    if not carried:
+        for name in (PAIRS_NAME, SCORES_NAME):
+            if (out_dir / name).is_file():
+                shutil.copy2(out_dir / name, work / name)
+    main = (work / MODEL_NAME) if carried else (out_dir / "sparse" / "0")
+    if colmap.has_model(main) and change.to_drop:
+        pruned = work / (MODEL_NAME + ".partial")
+        left = colmap.prune_model(main, set(change.to_drop), pruned)
+        _remove(work / MODEL_NAME)
+        if left >= 2:  # else nothing to continue from: the update maps from the database
+            pruned.rename(work / MODEL_NAME)
+        else:
+            _remove(pruned)
+    elif colmap.has_model(main) and not carried:
+        shutil.copytree(main, work / MODEL_NAME)
+    colmap.copy_database(out_dir / extract.DB_NAME, work / extract.DB_NAME)
+    plan = {"phase": "features", "old_key": info.get("key"), "paired_images": paired, "images": digests,
+            **change.counts(), "added": change.added, "removed": change.removed, "changed": change.changed}
+    _save(out_dir, key, plan)
+    logger.warning("update: %d images added, %d removed, %d changed since the last run: extracting %d, keeping the "
+                   "features, matches and model of the other %d", len(change.added), len(change.removed),
+                   len(change.changed), len(change.to_extract), len(digests) - len(change.to_extract))
+    return ledger(out_dir)
+
+
+def _remove(path: Path) -> None:
+    if path.is_dir():
+        shutil.rmtree(path)
+    else:
+        path.unlink(missing_ok=True)
+
+
+def _update_copies(conf: ExtractConfig, images: ImageSet, out_dir: Path, change: Change, info: dict[str, Any],
+                   executor: Executor | None, progress: bool) -> int:
+    """Delete the images that go from the database copy, import and extract those that come, and
+    write the new features file beside it; returns the number of images the update extracts."""
+    work = _work(out_dir)
+    db = work / extract.DB_NAME
+    colmap.delete_images(db, change.to_drop)
+    backend = make_backend(conf)
+    come = ImageSet(images.root, change.to_extract, {n: images.sizes[n] for n in change.to_extract})
+    uses_colmap_reader = hasattr(backend, "extract_to_database")
+    readable = set_aside(come, extract.unreadable(come, progress)) if uses_colmap_reader else come
+    _import(db, images, [n for n in readable.names if n not in colmap.database_images(db)], conf, info)
+    todo = sorted(set(readable.names) - colmap.images_with_keypoints(db))
+    if uses_colmap_reader:
+        if todo:
+            backend.extract_to_database(db, readable, todo, progress=progress)
+        extracted: dict[str, Any] = {}
+    else:
+        added_h5 = work / "added.h5"
+        if not added_h5.exists():  # else extracted before a kill: `extract_to_h5` renames it when complete
+            extract.extract_to_h5(backend, conf, readable, added_h5, executor, progress)
+        with h5py.File(added_h5, "r") as h5:
+            done = sorted(n for n in readable.names if has_features(h5, n))
+        extracted = {"path": added_h5, "names": done}
+        extract.import_keypoints(db, added_h5, done)
+    _write_features(out_dir, conf, images, change, extracted)
+    return len(readable.names)  # over every attempt: a killed update resumed counts them once
+
+
+def _import(db: Path, images: ImageSet, names: list[str], conf: ExtractConfig, info: dict[str, Any]) -> None:
+    """Import the new images: into the shared camera when the run has one and they have its size,
+    else each with its own camera (or per folder, as the run did)."""
+    if not names:
+        return
+    mode = info.get("camera_mode", "per_image")
+    shared = colmap.shared_camera(db) if mode == "single" else None
+    same = shared is not None and all(images.sizes[n] == (shared.width, shared.height) for n in names)
+    colmap.import_images(db, images.root, names, camera_mode="per_folder" if mode == "per_folder" else "per_image",
+                         camera_model=conf.camera_model, camera_params=conf.camera_params,
+                         default_focal_length_factor=conf.default_focal_length_factor,
+                         existing_camera_id=shared.camera_id if same else None)
+
+
+def _write_features(out_dir: Path, conf: ExtractConfig, images: ImageSet, change: Change,
+                    extracted: dict[str, Any]) -> None:
+    """The new features file in `.sara/update/`: the kept images' groups copied from the folder's
+    file, the new images' from the database copy (SIFT) or from the new images' own file."""
+    work, name = _work(out_dir), features_file_name(conf)
+    db = work / extract.DB_NAME
+    with_keypoints = colmap.images_with_keypoints(db)
+    keep = with_keypoints - set(change.to_extract)
+    with atomic_path(work / name) as tmp, h5py.File(tmp, "w") as new, h5py.File(out_dir / name, "r") as old:
+        for image in sorted(keep):
+            _copy_group(old, new, image)
+        if extracted:
+            with h5py.File(extracted["path"], "r") as added:
+                for image in extracted["names"]:
+                    _copy_group(added, new, image)
+            return
+        with colmap.FeatureReader(db) as reader:
+            for image, image_id in sorted(reader.image_ids().items()):
+                if image in keep or image not in with_keypoints:
+                    continue
+                kp, scale, desc = reader.read_sift(image_id)
+                write_features(new, image, Features(keypoints=colmap.colmap_to_hloc_keypoints(kp),
+                                                    descriptors=extract.hloc_descriptors(desc), scores=scale,
+                                                    image_size=images.sizes[image]))
+
+
+def _copy_group(src: h5py.File, dst: h5py.File, name: str) -> None:
+    """Copy the group of image `name` (a path with `/` for images in subfolders)."""
+    parent = name.rpartition("/")[0]
+    src.copy(src[name], dst.require_group(parent) if parent else dst, name=name.rpartition("/")[2])
+
+
+def _new_info(out_dir: Path, info: dict[str, Any], digests: dict[str, str], extracted: int,
+              elapsed: float) -> dict[str, Any]:
+    """The extract stage's record after the update: its counts over all images now."""
+    work = _work(out_dir)
+    with h5py.File(work / info.get("features", "features-sift.h5"), "r") as h5:
+        names = [n for n in digests if n in h5]
+        counts = {n: int(h5[n]["keypoints"].shape[0]) for n in names}
+    skipped = {n: why for n, why in info.get("skipped", {}).items() if n in digests and n not in counts}
+    skipped.update({n: "not extracted (unreadable)" for n in digests if n not in counts and n not in skipped})
+    return {**info, **extract.summarize(counts), "skipped": skipped, "images": digests, "time_s": elapsed,
+            "num_extracted": extracted}
+
+
+def _swap_in(out_dir: Path) -> None:
+    """Move the updated features file and database into place, then record the extract stage as
+    done for the new images (each step done again safely after a kill)."""
+    work, current = _work(out_dir), ledger(out_dir)
+    info = current["extract_info"]
+    h5_name = info.get("features", "features-sift.h5")
+    if (work / h5_name).exists():
+        os.replace(work / h5_name, out_dir / h5_name)
+    if (work / extract.DB_NAME).exists():
+        colmap.replace_database(work / extract.DB_NAME, out_dir / extract.DB_NAME)
+    db, h5 = out_dir / extract.DB_NAME, out_dir / h5_name
+    records.mark_done(out_dir, extract.STAGE, current["key"], info, outputs=extract.recorded(db, h5))
+    (work / "added.h5").unlink(missing_ok=True)
+    current["phase"] = "extracted"
+    _save(out_dir, current["key"], current)
+    logger.info("update: %d images extracted in %.1f s", current.get("num_extracted", 0),
+                current.get("extract_time_s", 0.0))
+
+
+def pending(out_dir: Path, extract_key: str) -> dict[str, Any] | None:
+    """The ledger of an update whose features are in place for `extract_key` and whose later
+    stages have not finished yet (None when there is none)."""
+    current = ledger(out_dir)
+    if current.get("phase") != "extracted" or current.get("key") != extract_key:
+        return None
+    return current
+
+
+def kept_pairs(out_dir: Path, update: dict[str, Any]) -> tuple[list[Pair], list[str], Path | None]:
+    """(the pairs of the run between images kept unchanged, the images that need pairs, the run's
+    scores file or None) of a pending update."""
+    work, paired, now = _work(out_dir), update["paired_images"], update["images"]
+    kept = {n for n, digest in now.items() if paired.get(n) == digest}
+    pairs = read_pairs(work / PAIRS_NAME) if (work / PAIRS_NAME).is_file() else []
+    scores = work / SCORES_NAME if (work / SCORES_NAME).is_file() else None
+    return [p for p in pairs if p[0] in kept and p[1] in kept], sorted(set(now) - kept), scores
+
+
+def start_model(out_dir: Path, extract_key: str) -> Path | None:
+    """The kept main model a pending update's mapping continues from (None: map from the database)."""
+    update = pending(out_dir, extract_key)
+    model = _work(out_dir) / MODEL_NAME
+    return model if update is not None and colmap.has_model(model) else None
+
+
+def record_stage(out_dir: Path, name: str, info: dict[str, Any]) -> None:
+    """Note what a later stage of a pending update did (its counts go into run.json)."""
+    current = ledger(out_dir)
+    if current.get("phase") == "extracted":
+        current[name] = info
+        _save(out_dir, current["key"], current)
+
+
+def finish(out_dir: Path, extract_key: str, summary: dict[str, Any]) -> dict[str, Any] | None:
+    """Close a pending update once its model is in place: the ledger keeps the counts, the kept
+    pairs and model are deleted. Returns the counts for run.json (None when no update ran)."""
+    current = pending(out_dir, extract_key)
+    if current is None:
+        done = ledger(out_dir)
+        return done.get("summary") if done.get("phase") == "done" and done.get("key") == extract_key else None
+    report = {**{k: current.get(k, 0) for k in ("num_added", "num_removed", "num_changed", "num_extracted")},
+              **summary, "added": current.get("added", []), "removed": current.get("removed", []),
+              "changed": current.get("changed", [])}
+    _save(out_dir, extract_key, {"phase": "done", "summary": report})
+    shutil.rmtree(_work(out_dir), ignore_errors=True)
+    logger.warning("update: %d added, %d removed, %d changed; %d images extracted, %d pairs scored, %d pairs "
+                   "matched", report["num_added"], report["num_removed"], report["num_changed"],
+                   report["num_extracted"], report.get("num_pairs_scored", 0), report.get("num_pairs_matched", 0))
+    return report
+
+
+def discard(out_dir: Path) -> None:
+    """Forget any update (`--overwrite` redoes everything)."""
+    records.clear(out_dir, STAGE)
+    shutil.rmtree(_work(out_dir), ignore_errors=True)

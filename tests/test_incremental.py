@@ -1,0 +1,174 @@
+"""Incremental runs (issue 30): images added to, removed from or changed in a finished run's folder
+are extracted, paired, matched and mapped on their own; the rest is kept."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from harness import assert_error, assert_ok, registered, sara_process, signal_when
+from sara import colmap
+from sara.io.h5 import list_names
+
+NUM_FIRST = 6  # images of the first run; the scene has two more
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory) -> Path:
+    """A small synthetic scene of 8 views (at the fixtures' image size: smaller ones register badly)."""
+    from sara.synthetic import make_scene
+
+    images, _ = make_scene(tmp_path_factory.mktemp("inc_scene"), num_images=NUM_FIRST + 2)
+    return images
+
+
+def _folder(scene: Path, folder: Path, names: list[str]) -> Path:
+    folder.mkdir(parents=True, exist_ok=True)
+    for name in names:
+        shutil.copyfile(scene / name, folder / name)
+    return folder
+
+
+@pytest.fixture(scope="module")
+def first_run(scene, tmp_path_factory) -> tuple[Path, Path]:
+    """(images folder, output folder) of a finished run of the first NUM_FIRST views."""
+    base = tmp_path_factory.mktemp("inc_first")
+    images = _folder(scene, base / "images", sorted(os.listdir(scene))[:NUM_FIRST])
+    out = base / "out"
+    assert_ok(sara_process("run", images, out, "-q"))
+    return images, out
+
+
+@pytest.fixture
+def copy_of_first(first_run, tmp_path) -> tuple[Path, Path]:
+    images, out = first_run
+    return (Path(shutil.copytree(images, tmp_path / "images")),
+            Path(shutil.copytree(out, tmp_path / "out", symlinks=True)))
+
+
+def _record(out: Path, stage: str) -> dict:
+    return json.loads((out / ".sara" / f"{stage}.json").read_text())
+
+
+def _pairs(out: Path) -> set[tuple[str, str]]:
+    return {tuple(sorted(line.split())) for line in (out / "pairs.txt").read_text().splitlines() if line.strip()}
+
+
+def _state(out: Path) -> dict:
+    """What an update leaves: images in the database, features file and model, pairs, counts."""
+    update = json.loads((out / "run.json").read_text())["stages"]["update"]
+    return {"database": sorted(colmap.database_images(out / "database.db")),
+            "features": sorted(list_names(out / "features-sift.h5")), "model": sorted(registered(out)),
+            "pairs": _pairs(out), "update": update}
+
+
+def test_added_images_are_extracted_paired_and_matched_alone(scene, copy_of_first):
+    images, out = copy_of_first
+    before = _pairs(out)
+    new = sorted(os.listdir(scene))[NUM_FIRST:]
+    _folder(scene, images, new)
+    assert_ok(sara_process("run", images, out, "-q"))
+    update = json.loads((out / "run.json").read_text())["stages"]["update"]
+    assert update["num_added"] == 2 and update["num_removed"] == 0 and update["num_changed"] == 0
+    assert update["num_extracted"] == 2 and _record(out, "extract")["info"]["num_extracted"] == 2
+    # only pairs with a new image were scored: the 2 x 6 with the kept views and the one between them
+    assert update["num_pairs_scored"] == 2 * NUM_FIRST + 1
+    assert before <= _pairs(out)  # every earlier pair kept (its matches too)
+    new_pairs = _pairs(out) - before
+    assert update["num_pairs_matched"] == len(new_pairs) > 0
+    assert any(set(pair) & set(new) for pair in new_pairs)
+    assert sorted(registered(out)) == sorted(os.listdir(images))
+    assert len(list_names(out / "features-sift.h5")) == NUM_FIRST + 2
+    # the same command again: nothing to do, the counts of the update stay in run.json
+    assert_ok(sara_process("run", images, out, "-q"))
+    assert json.loads((out / "run.json").read_text())["stages"]["update"] == update
+
+
+def test_removed_images_leave_database_features_pairs_and_model(copy_of_first):
+    images, out = copy_of_first
+    gone = sorted(os.listdir(images))[2:4]
+    for name in gone:
+        (images / name).unlink()
+    assert_ok(sara_process("run", images, out, "-q"))
+    state = _state(out)
+    assert state["update"]["num_removed"] == 2 and state["update"]["num_extracted"] == 0
+    for key in ("database", "features", "model"):
+        assert not set(gone) & set(state[key]), key
+    assert not any(set(pair) & set(gone) for pair in state["pairs"])
+    assert state["model"] == sorted(os.listdir(images))
+
+
+def test_changed_image_is_extracted_again(copy_of_first):
+    images, out = copy_of_first
+    name = sorted(os.listdir(images))[1]
+    pixels = np.asarray(Image.open(images / name)).astype(np.int16)
+    pixels[::7, ::5] += 3  # a slight retouch: new bytes, nearly the same picture
+    Image.fromarray(np.clip(pixels, 0, 255).astype(np.uint8)).save(images / name)
+    keypoints_before = _record(out, "extract")["info"]["keypoints_mean"]
+    assert_ok(sara_process("run", images, out, "-q"))
+    update = json.loads((out / "run.json").read_text())["stages"]["update"]
+    assert update["changed"] == [name] and update["num_extracted"] == 1 and update["num_added"] == 0
+    assert _record(out, "extract")["info"]["keypoints_mean"] != keypoints_before  # its features are new
+    assert any(name in pair for pair in _pairs(out))
+    assert sorted(registered(out)) == sorted(os.listdir(images))
+
+
+def test_changed_extraction_settings_are_refused_with_the_setting_named(scene, copy_of_first):
+    images, out = copy_of_first
+    _folder(scene, images, sorted(os.listdir(scene))[NUM_FIRST:])
+    result = sara_process("run", images, out, "-q", "-s", "extract.max_num_features=1000")
+    assert_error(result, 3, "extract.max_num_features", "--overwrite")
+    assert not (out / ".sara" / "update").exists()
+
+
+def _changed_folder(scene: Path, images: Path) -> Path:
+    """The change of the kill tests: the two views added, the first one removed."""
+    _folder(scene, images, sorted(os.listdir(scene))[NUM_FIRST:])
+    (images / sorted(os.listdir(images))[0]).unlink()
+    return images
+
+
+@pytest.fixture(scope="module")
+def uninterrupted(scene, first_run, tmp_path_factory) -> dict:
+    """The state an update never stopped leaves (`_state`)."""
+    images, out = first_run
+    base = tmp_path_factory.mktemp("inc_reference")
+    images = _changed_folder(scene, Path(shutil.copytree(images, base / "images")))
+    reference = Path(shutil.copytree(out, base / "out", symlinks=True))
+    assert_ok(sara_process("run", images, reference, "-q"))
+    return _state(reference)
+
+
+@pytest.mark.parametrize("marker", ["update.json", "pairs.next", "swap"])
+def test_killed_update_then_rerun_gives_the_uninterrupted_result(marker, scene, copy_of_first, uninterrupted,
+                                                                 monkeypatch, run_cli):
+    """Stopped once the update's ledger exists (copies made, nothing extracted yet), between the
+    swap of the features file and that of the database, or once the pairs are being selected
+    (features swapped in), then the same command: the same result as an update never stopped."""
+    images, out = copy_of_first
+    _changed_folder(scene, images)
+    cmd = ["run", images, out, "-q"]
+    if marker == "swap":  # in this process: SIGKILL cannot be timed between two renames
+        from sara import incremental
+
+        def killed(*args: object) -> None:
+            raise SystemExit(137)
+
+        monkeypatch.setattr(incremental.colmap, "replace_database", killed)
+        assert run_cli(*cmd).code != 0
+        monkeypatch.undo()
+        assert json.loads((out / ".sara" / "update.json").read_text())["info"]["phase"] == "swap"
+    else:
+        result = signal_when(cmd, out / ".sara" / marker, signal.SIGKILL)
+        if result.code == 0:
+            pytest.skip("the run finished before the kill")
+    assert_ok(sara_process(*cmd))
+    assert _state(out) == uninterrupted
+    assert not (out / ".sara" / "update").exists()
