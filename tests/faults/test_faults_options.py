@@ -138,6 +138,17 @@ def test_map_with_a_missing_image_folder(finished_run, tmp_path, run_cli):
     assert_kept(before, finished_run)
 
 
-def test_match_on_a_folder_that_is_not_a_run(tmp_path, run_cli):
-    result = run_cli("match", tmp_path, "-q")
-    assert_error(result, 2, "run `sara extract")
+@pytest.mark.parametrize("command", ["match", "map"])
+def test_match_or_map_where_extract_never_ran(command, tmp_path, run_cli):
+    """An output folder whose extract stage never ran is an earlier stage unfinished: exit 3 for
+    both commands, as the exit-code table says (issue 30: `sara match` gave 2)."""
+    result = run_cli(command, tmp_path, "-q")
+    assert_error(result, 3, "extract stage", "never ran", "sara extract")
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("command", ["match", "map"])
+def test_match_or_map_on_a_missing_folder(command, tmp_path, run_cli):
+    result = run_cli(command, tmp_path / "typo", "-q")
+    assert_error(result, 2, "output folder not found", "typo")
+    assert not (tmp_path / "typo").exists()

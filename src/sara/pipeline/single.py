@@ -27,9 +27,14 @@ def load_run(out_dir: Path) -> dict[str, Any]:
 
 
 def _require_database(out_dir: Path, hint: str) -> Path:
-    db = Path(out_dir) / extract.DB_NAME
+    """OUT's database; a missing OUT is bad usage (exit 2), an OUT where the extract stage never
+    made one is an earlier stage unfinished (exit 3, as `sara map` after an unfinished match)."""
+    out_dir = Path(out_dir)
+    if not out_dir.is_dir():
+        raise FileNotFoundError(f"output folder not found: {out_dir} ({hint})")
+    db = out_dir / extract.DB_NAME
     if not db.exists():
-        raise FileNotFoundError(f"{db} not found: {hint}")
+        raise IncompleteStageError(f"the extract stage in {out_dir} never ran (no {db.name}): {hint}")
     return db
 
 
