@@ -27,3 +27,17 @@ import pytest
 def images(synthetic_scene) -> Path:
     """The synthetic scene's image folder."""
     return synthetic_scene[0]
+
+
+@pytest.fixture
+def spaced_folder(images, tmp_path) -> Path:
+    """The scene's images, the first ones renamed to `SPACED_NAMES`."""
+    import shutil
+
+    from harness import SPACED_NAMES
+
+    folder = tmp_path / "spaced"
+    folder.mkdir()
+    for k, path in enumerate(sorted(images.iterdir())):
+        shutil.copyfile(path, folder / (SPACED_NAMES[k] if k < len(SPACED_NAMES) else path.name))
+    return folder
