@@ -82,21 +82,41 @@ DIGESTS_NAME = "image-digests.json"
 
 
 def _key(images: ImageSet, conf: ExtractConfig, out_dir: Path, *,
-         progress: bool = True) -> tuple[str, Callable[[], None]]:
+         progress: bool = True) -> tuple[str, Callable[[], None], Callable[[set[str]], str]]:
     """(the stage key: the images' names and contents and the settings, a function that saves the
-    images' digests for the next run: to call once the key is accepted).
+    images' digests for the next run: to call once the key is accepted, a function that gives the
+    key without some images: those the stage sets aside).
 
     Features made by an earlier sara, keyed by the images' sizes and modification times, keep
     that key while those are unchanged.
     """
     settings = {k: v for k, v in conf.__dict__.items() if not (k in _LATER_SETTINGS and v == _LATER_SETTINGS[k])}
+    cache = out_dir / ".sara" / DIGESTS_NAME
+    found: list = []
+
+    def digests() -> tuple[dict[str, str], dict[str, list] | None]:
+        found[:] = found or [content_digests(images, cache, progress=progress)]
+        return found[0]
+
+    def key_without(aside: set[str]) -> str:
+        return fingerprint({"images": [[n, digests()[0][n]] for n in images.names if n not in aside], "conf": settings})
+
     record = records.read_record(out_dir, STAGE)
     if record is not None and record.get("key") == fingerprint({"images": images.fingerprint_data(), "conf": settings}):
-        return record["key"], lambda: None
-    cache = out_dir / ".sara" / DIGESTS_NAME
-    digests, entries = content_digests(images, cache, progress=progress)
-    key = fingerprint({"images": [[name, digests[name]] for name in images.names], "conf": settings})
-    return key, lambda: save_digests(cache, entries)
+        return record["key"], lambda: None, key_without
+    return key_without(set()), lambda: save_digests(cache, digests()[1]), key_without
+
+
+def _key_as_recorded(record: dict | None, key: str, key_without: Callable[[set[str]], str]) -> str:
+    """The finished stage's key when the images differ from its own only by images it set aside
+    (a file that vanished during extraction and is gone now, or is back): those stay set aside."""
+    if record is None or record.get("done") is not True or record.get("key") == key:
+        return key
+    info = record.get("info", {})
+    aside = set(info.get("skipped") or {})
+    if aside and info.get("usable_key") and key_without(aside) == info["usable_key"]:
+        return record["key"]
+    return key
 
 
 def _check_existing_database(db_path: Path, images: ImageSet) -> bool:
@@ -124,7 +144,8 @@ def run(conf: ExtractConfig, images: ImageSet, out_dir: Path, *, executor: Execu
     """
     out_dir = Path(out_dir)
     db_path, h5_path = out_dir / DB_NAME, out_dir / features_file_name(conf)
-    key, save_digests_ = _key(images, conf, out_dir, progress=progress)
+    key, save_digests_, key_without = _key(images, conf, out_dir, progress=progress)
+    key = _key_as_recorded(records.read_record(out_dir, STAGE), key, key_without)
     tic = time.perf_counter()
     if not overwrite and records.is_done(out_dir, STAGE, key) and _outputs_intact(out_dir, db_path, h5_path):
         logger.info("extract: features up to date, skipping")
@@ -169,7 +190,8 @@ def run(conf: ExtractConfig, images: ImageSet, out_dir: Path, *, executor: Execu
     if conf.estimate_focal and camera_mode == "single" and not conf.camera_params:
         info["focal"] = _check_focal(db_path, h5_path, readable.names)
     info.update(camera_mode=camera_mode, backend=conf.backend, features=h5_path.name,
-                skipped={**unreadable, **failed}, time_s=time.perf_counter() - tic)
+                skipped={**unreadable, **failed}, time_s=time.perf_counter() - tic,
+                usable_key=key_without(set(unreadable) | set(failed)))
     records.mark_done(out_dir, STAGE, key, info, outputs=_outputs(db_path, h5_path))
     return h5_path
 
@@ -200,9 +222,11 @@ def _check_focal(db_path: Path, h5_path: Path, names: list[str]) -> dict | None:
 
 
 def usable(images: ImageSet, out_dir: Path, *, warn: bool = False) -> ImageSet:
-    """The images of a finished extraction: without those its record lists as unreadable."""
+    """The images of a finished extraction: without those its record lists as unreadable (those
+    gone from the folder since, e.g. vanished during extraction, are still listed as skipped)."""
     skipped = records.done_info(out_dir, STAGE).get("skipped", {})
-    return set_aside(images, {n: r for n, r in skipped.items() if n in images.sizes}, warn=warn)
+    return set_aside(images, {n: r for n, r in skipped.items() if n in images.sizes or n not in images.skipped},
+                     warn=warn)
 
 
 def _outputs(db_path: Path, h5_path: Path) -> dict:
