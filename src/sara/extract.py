@@ -20,7 +20,7 @@ from .execute import Executor, SerialExecutor, for_device, single_threaded_torch
 from .features import Keypoints, LocalFeatures, features_file_name, make_backend
 from .io import DamagedOutputError, OutputStateError, atomic_path, ensure_free_space, fingerprint, records
 from .io.h5 import H5_ERRORS, Features, features_digest, has_features, write_features
-from .io.images import ImageSet, content_digests, save_digests, set_aside
+from .io.images import ImageSet, content_digests, exif_camera, load_image, save_digests, set_aside, to_full_resolution
 from .scoring import focal
 
 logger = logging.getLogger(__name__)
@@ -31,28 +31,6 @@ DB_NAME = "database.db"
 
 class OutputMismatchError(OutputStateError, ValueError):
     """An output folder holds results made from other inputs or settings."""
-
-
-def exif_camera(path: Path) -> tuple[str | None, str | None, float | None]:
-    """(make, model, focal length in mm) from EXIF, each None where absent or unreadable."""
-    from PIL import Image
-
-    try:
-        with Image.open(path) as im:
-            exif = im.getexif()
-            make, model = exif.get(0x010F), exif.get(0x0110)
-            focal = exif.get_ifd(0x8769).get(0x920A) or exif.get(0x920A)
-    except Exception:  # noqa: BLE001 - EXIF is optional; any failure means "no EXIF"
-        return None, None, None
-    try:
-        focal_mm = float(focal) if focal else None
-    except (TypeError, ValueError, ZeroDivisionError):
-        focal_mm = None
-
-    def text(value: object) -> str | None:
-        return str(value).strip("\x00 ").strip() or None if value else None
-
-    return text(make), text(model), focal_mm
 
 
 def resolve_camera_mode(images: ImageSet, conf: ExtractConfig) -> str:
@@ -311,26 +289,6 @@ def _bytes_per_image(conf: ExtractConfig) -> int:
 
 def _partial(h5_path: Path) -> Path:
     return h5_path.with_name(h5_path.name + ".partial")
-
-
-def load_image(path: Path, max_size: int) -> tuple[np.ndarray, tuple[float, float]]:
-    """(H, W, 3) uint8 RGB pixels as stored (no EXIF rotation, like COLMAP), the longer side at most
-    `max_size`; and the (x, y) factors that take its pixel coordinates back to the full image."""
-    from PIL import Image
-
-    with Image.open(path) as im:
-        im = im.convert("RGB")
-        width, height = im.size
-        scale = min(1.0, max_size / max(width, height))
-        if scale < 1.0:
-            im = im.resize((max(1, round(width * scale)), max(1, round(height * scale))), Image.Resampling.BICUBIC)
-        pixels = np.asarray(im, dtype=np.uint8)
-    return pixels, (width / pixels.shape[1], height / pixels.shape[0])
-
-
-def to_full_resolution(xy: np.ndarray, factors: tuple[float, float]) -> np.ndarray:
-    """hloc-convention pixel coordinates of a resized image -> those of the full image."""
-    return ((np.asarray(xy, np.float64) + 0.5) * np.asarray(factors) - 0.5).astype(np.float32)
 
 
 @dataclass(frozen=True)

@@ -9,6 +9,7 @@ import unicodedata
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
 from tqdm import tqdm
 
 from . import read_json, write_json_atomic
@@ -239,3 +240,45 @@ def upright_copy(images: ImageSet, folder: Path, *, progress: bool = True) -> Im
             tmp.replace(dst)
             sizes[name] = upright.size
     return ImageSet(root=folder, names=list(images.names), sizes=sizes, skipped=dict(images.skipped))
+
+
+def exif_camera(path: Path) -> tuple[str | None, str | None, float | None]:
+    """(make, model, focal length in mm) from EXIF, each None where absent or unreadable."""
+    from PIL import Image
+
+    try:
+        with Image.open(path) as im:
+            exif = im.getexif()
+            make, model = exif.get(0x010F), exif.get(0x0110)
+            focal = exif.get_ifd(0x8769).get(0x920A) or exif.get(0x920A)
+    except Exception:  # noqa: BLE001 - EXIF is optional; any failure means "no EXIF"
+        return None, None, None
+    try:
+        focal_mm = float(focal) if focal else None
+    except (TypeError, ValueError, ZeroDivisionError):
+        focal_mm = None
+
+    def text(value: object) -> str | None:
+        return str(value).strip("\x00 ").strip() or None if value else None
+
+    return text(make), text(model), focal_mm
+
+
+def load_image(path: Path, max_size: int) -> tuple[np.ndarray, tuple[float, float]]:
+    """(H, W, 3) uint8 RGB pixels as stored (no EXIF rotation, like COLMAP), the longer side at most
+    `max_size`; and the (x, y) factors that take its pixel coordinates back to the full image."""
+    from PIL import Image
+
+    with Image.open(path) as im:
+        im = im.convert("RGB")
+        width, height = im.size
+        scale = min(1.0, max_size / max(width, height))
+        if scale < 1.0:
+            im = im.resize((max(1, round(width * scale)), max(1, round(height * scale))), Image.Resampling.BICUBIC)
+        pixels = np.asarray(im, dtype=np.uint8)
+    return pixels, (width / pixels.shape[1], height / pixels.shape[0])
+
+
+def to_full_resolution(xy: np.ndarray, factors: tuple[float, float]) -> np.ndarray:
+    """hloc-convention pixel coordinates of a resized image -> those of the full image."""
+    return ((np.asarray(xy, np.float64) + 0.5) * np.asarray(factors) - 0.5).astype(np.float32)
