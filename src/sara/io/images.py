@@ -103,6 +103,32 @@ def save_digests(cache_path: Path, entries: dict[str, list] | None) -> None:
         write_json_atomic(Path(cache_path), entries)
 
 
+def folder_mismatch(root: Path, cache_path: Path, *, rotated: frozenset[str] = frozenset()) -> str | None:
+    """Why the images in `root` are not those whose digests `cache_path` holds (None when they are).
+
+    `cache_path` is the digest cache `content_digests` keeps for a run's images. None of its
+    names in `root`, or an image whose bytes differ, is a mismatch; images missing from `root`
+    are not (a file removed since). `rotated`: names whose digest is that of an upright copy made
+    by sara, which cannot be compared with the original. A missing or unreadable cache: None.
+    """
+    try:
+        cached = read_json(Path(cache_path))
+    except (OSError, ValueError, UnicodeDecodeError):
+        return None
+    if not isinstance(cached, dict) or not cached:
+        return None
+    present = [name for name in sorted(cached) if (Path(root) / name).is_file()]
+    if not present:
+        return f"none of its images is in {root} (e.g. {next(iter(sorted(cached)))!r})"
+    for name in present:
+        entry, st = cached[name], (Path(root) / name).stat()
+        if name in rotated or not isinstance(entry, list) or len(entry) != 3:
+            continue
+        if entry[:2] != [st.st_size, st.st_mtime_ns] and _sha256(Path(root) / name) != entry[2]:
+            return f"{root / name} is not the image of that name the features were made from"
+    return None
+
+
 def list_image_files(root: Path, *, recursive: bool = False) -> list[str]:
     """Names (relative, POSIX) of files with an image extension under `root`, sorted.
 

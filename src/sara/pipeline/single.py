@@ -12,6 +12,7 @@ from .. import colmap, extract, mapping, match
 from ..config import PipelineConfig
 from ..features import features_file_name
 from ..io import DamagedOutputError, IncompleteStageError, OutputLock, link_or_copy, read_json, records
+from ..io.images import folder_mismatch
 from . import pairs_stage
 from .run import map_model, match_pairs, preflight, recover
 
@@ -82,9 +83,11 @@ def map_only(conf: PipelineConfig, out_dir: Path, images_root: Path | None = Non
     """
     out_dir = Path(out_dir)
     db = _require_database(out_dir, "run `sara extract` and `sara match` first")
+    given = images_root is not None
     images_root = Path(images_root or load_run(out_dir)["images_root"])
     if not images_root.is_dir():
         raise FileNotFoundError(f"image folder {images_root} not found: give it with --images")
+    _check_image_folder(out_dir, images_root, f"--images {images_root}" if given else f"the image folder {images_root}")
     preflight(dataclasses.replace(conf, pairs=dataclasses.replace(conf.pairs, method="exhaustive")))
     with OutputLock(out_dir, clean=True):
         recover(out_dir)
@@ -100,6 +103,18 @@ def map_only(conf: PipelineConfig, out_dir: Path, images_root: Path | None = Non
         colmap.send_log_to(out_dir / "logs", verbose=verbose_colmap)
         map_model(conf, images_root, out_dir, progress=progress)
     return records.done_info(out_dir, mapping.STAGE)
+
+
+def _check_image_folder(out_dir: Path, images_root: Path, what: str) -> None:
+    """The images mapping reads (for the colours of the points) must be those the features were
+    made from: another scene's folder, or one whose images share their names only, is refused."""
+    upright = out_dir / "images_upright"  # EXIF-rotated images re-encoded upright by sara
+    rotated = frozenset(p.relative_to(upright).as_posix() for p in upright.rglob("*")
+                        if p.is_file() and not p.is_symlink()) if upright.is_dir() else frozenset()
+    problem = folder_mismatch(images_root, out_dir / ".sara" / extract.DIGESTS_NAME, rotated=rotated)
+    if problem is not None:
+        raise ValueError(f"{what} does not hold the images {out_dir} was made from: {problem}; "
+                         "give the image folder of the extraction with --images")
 
 
 def share_features(features_dir: Path, out_dir: Path) -> bool:
