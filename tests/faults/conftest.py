@@ -9,6 +9,7 @@ be. One file per class of fault:
     test_faults_resume.py     resume trusts state it should not (damaged or unfinished outputs)
     test_faults_no_result.py  a failed or degenerate run never destroys a good one
     test_faults_names.py      file names: odd, unusable, in pairs files, end to end
+    test_faults_folder.py     what else is in the image folder: output folders, files not used, HEIC
     test_faults_decoders.py   files that one decoder reads and another does not
     test_faults_disk.py       the file system: paths, write errors, full and read-only disks, umask
     test_faults_signals.py    signals during a run, then resume
