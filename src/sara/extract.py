@@ -281,10 +281,11 @@ def _failed_in_extraction(images: ImageSet, with_keypoints: set[str], todo: list
 
 
 def _bytes_per_image(conf: ExtractConfig) -> int:
-    """About what one image adds to the database and the features file, in bytes (half the
-    configured maximum of features: (2 + 4) float32 keypoint values, 128 descriptor bytes in the
-    database; float16 descriptors, keypoints and scores in the HDF5 file)."""
-    return conf.max_num_features // 2 * (6 * 4 + 128 + 128 * 2 + 3 * 4)
+    """At most what one image adds to the database and the features file, in bytes: the configured
+    maximum of features ((2 + 4) float32 keypoint values, 128 descriptor bytes in the database;
+    float16 descriptors, keypoints and scores in the HDF5 file). COLMAP aborts the whole process
+    when the database cannot grow, so the check before must not underestimate."""
+    return conf.max_num_features * (6 * 4 + 128 + 128 * 2 + 3 * 4)
 
 
 def _partial(h5_path: Path) -> Path:
