@@ -66,12 +66,13 @@ def run(conf: MatchConfig, pairs_path: Path, db_path: Path, out_dir: Path, *, fe
         logger.info("match: %d pairs already matched, skipping", len(pairs))
         return ready
     matcher = make_matcher(conf, features_backend)  # loads weights: fails here, before any work
-    # the whole stage's matches (and the copy of the database beside), before COLMAP writes any:
-    # it aborts the process when the database cannot grow
-    copy_bytes = Path(db_path).stat().st_size if beside and before["num_matched_pairs"] > 0 else 0
-    ensure_free_space(out_dir, BYTES_PER_PAIR * len(pairs) + copy_bytes)
     conf_key = fingerprint({**_result_settings(conf), "backend": matcher_name, "features": Path(features_path).name})
     same_settings = not overwrite and records.is_done(out_dir, CONF_RECORD, conf_key)  # of `db_path`'s matches
+    # room for the stage's new matches (and the copy of the database beside) before COLMAP writes
+    # any: it aborts the process when the database cannot grow
+    todo = len(_unmatched(db_path, pairs, names)) if same_settings else len(pairs)
+    copy_bytes = Path(db_path).stat().st_size if beside and before["num_matched_pairs"] > 0 else 0
+    ensure_free_space(out_dir, BYTES_PER_PAIR * todo + copy_bytes)
     kept = {stage: records.read_record(out_dir, stage) for stage in (STAGE, PROGRESS_RECORD)}
     work = _work_database(db_path, next_db, out_dir, key, conf_key, pairs, names, same_settings=same_settings,
                           beside=beside and before["num_matched_pairs"] > 0)
