@@ -195,3 +195,31 @@ def truncate(path: Path, keep: float) -> None:
     """Cut a file to the share `keep` of its bytes, as a full disk or a kill leaves it."""
     data = path.read_bytes()
     path.write_bytes(data[: int(len(data) * keep)])
+
+
+#: names that COLMAP's pair importer would misread: aliased in the database while matching
+SPACED_NAMES = ["view one.png", "#view two.png", " view three.png", "view four .png"]
+
+
+def aliased_in(db_path: Path) -> bool:
+    """Whether the database holds a name aliased for COLMAP's pair importer (read it only once
+    sara has stopped: a reader beside COLMAP can make its writes fail as "database is locked")."""
+    import sqlite3
+
+    con = sqlite3.connect(f"file:{db_path}?mode=ro", uri=True)
+    try:
+        return con.execute("SELECT COUNT(*) FROM images WHERE name LIKE 'sara-alias-%'").fetchone()[0] > 0
+    finally:
+        con.close()
+
+
+def present_for(path: Path, seconds: float) -> Callable[[int], bool]:
+    """A condition for `signal_when`: `path` has existed for `seconds` (seen by polling)."""
+    first_seen: list[float] = []
+
+    def check(pid: int) -> bool:
+        if not Path(path).exists():
+            return False
+        first_seen[:] = first_seen or [time.monotonic()]
+        return time.monotonic() - first_seen[0] >= seconds
+    return check

@@ -21,6 +21,7 @@ from scipy.spatial.transform import Rotation
 
 from sara import hloc
 from sara.config import make_config
+from sara.io.pairs import read_pairs
 
 DESCRIPTOR_DIM = 256  # SuperPoint's
 NUM_DISTRACTORS = 150
@@ -165,3 +166,26 @@ def test_names_with_spaces_are_refused(tmp_path: Path):
         hloc.select_pairs(path, tmp_path / "pairs.txt")
     with pytest.raises(FileNotFoundError):
         hloc.select_pairs(tmp_path / "missing.h5", tmp_path / "pairs.txt")
+
+
+def test_pairs_file_with_a_byte_order_mark(synthetic_scene, tmp_path: Path):
+    """A pairs file saved by a Windows editor starts with a UTF-8 byte-order mark: it is not part
+    of the first name, neither for sara's reader nor for COLMAP's verification (issue 30)."""
+    from sara.colmap import model as colmap_model
+
+    images, gt = synthetic_scene
+    names = sorted(p.name for p in images.iterdir())
+    features = tmp_path / "feats.h5"
+    write_superpoint_like(gt, features)
+    plain = tmp_path / "pairs.txt"
+    plain.write_text("".join(f"{a} {b}\n" for a, b in zip(names, names[1:])))
+    with_bom = tmp_path / "pairs-bom.txt"
+    with_bom.write_bytes(b"\xef\xbb\xbf" + plain.read_bytes())
+    assert read_pairs(with_bom, known_names=names) == read_pairs(plain, known_names=names)
+    assert read_pairs(with_bom)[0] == (names[0], names[1])
+    matches = match_mutual_nn(features, plain, tmp_path / "matches.h5")
+    model_dir = hloc.reconstruct(images, features, matches, with_bom, tmp_path / "sfm", progress=False)
+    verified = colmap_model.database_pairs(tmp_path / "sfm" / "database.db")[1]
+    assert len(verified) == len(names) - 1  # the first pair too
+    assert pycolmap.Reconstruction(str(model_dir)).num_reg_images() == len(names)
+    assert not (tmp_path / "sfm" / ".pairs-verified.txt").exists()

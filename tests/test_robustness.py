@@ -64,7 +64,8 @@ def test_check_image_reasons(messy_folder: Path):
 
 def test_scan_skips_bad_files(messy_folder: Path):
     images = scan_images(messy_folder, progress=False)
-    assert sorted(images.skipped) == ["not_an_image.png", "tiny.png", "truncated.jpg", "zero.jpg"]
+    assert sorted(images.skipped) == ["not_an_image.png", "notes.txt", "tiny.png", "truncated.jpg", "zero.jpg"]
+    assert images.skipped["notes.txt"] == "not an image file"
     assert len(images.names) == 12 and "sub/nested.png" not in images.names
     assert images.orientation == {"view04_rotated.jpg": 6}
     nested = scan_images(messy_folder, recursive=True, progress=False)
@@ -73,7 +74,7 @@ def test_scan_skips_bad_files(messy_folder: Path):
 
 def test_messy_folder_end_to_end(tmp_path: Path, messy_folder: Path):
     report = run(make_config("sift-offline"), messy_folder, tmp_path / "out", progress=False)
-    assert sorted(report.skipped_images) == ["not_an_image.png", "tiny.png", "truncated.jpg", "zero.jpg"]
+    assert sorted(report.skipped_images) == ["not_an_image.png", "notes.txt", "tiny.png", "truncated.jpg", "zero.jpg"]
     assert report.stages["extract"]["images_without_features"] == ["flat.png"]
     # every view with features is posed, the duplicate included (rescued despite zero parallax)
     assert report.stages["map"]["component_sizes"][0] == 11

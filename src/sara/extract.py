@@ -20,7 +20,7 @@ from .execute import Executor, SerialExecutor, for_device, single_threaded_torch
 from .features import Keypoints, LocalFeatures, features_file_name, make_backend
 from .io import DamagedOutputError, OutputStateError, atomic_path, ensure_free_space, fingerprint, records
 from .io.h5 import H5_ERRORS, Features, features_digest, has_features, write_features
-from .io.images import ImageSet, content_digests, save_digests, set_aside
+from .io.images import ImageSet, content_digests, exif_camera, load_image, save_digests, set_aside, to_full_resolution
 from .scoring import focal
 
 logger = logging.getLogger(__name__)
@@ -31,28 +31,6 @@ DB_NAME = "database.db"
 
 class OutputMismatchError(OutputStateError, ValueError):
     """An output folder holds results made from other inputs or settings."""
-
-
-def exif_camera(path: Path) -> tuple[str | None, str | None, float | None]:
-    """(make, model, focal length in mm) from EXIF, each None where absent or unreadable."""
-    from PIL import Image
-
-    try:
-        with Image.open(path) as im:
-            exif = im.getexif()
-            make, model = exif.get(0x010F), exif.get(0x0110)
-            focal = exif.get_ifd(0x8769).get(0x920A) or exif.get(0x920A)
-    except Exception:  # noqa: BLE001 - EXIF is optional; any failure means "no EXIF"
-        return None, None, None
-    try:
-        focal_mm = float(focal) if focal else None
-    except (TypeError, ValueError, ZeroDivisionError):
-        focal_mm = None
-
-    def text(value: object) -> str | None:
-        return str(value).strip("\x00 ").strip() or None if value else None
-
-    return text(make), text(model), focal_mm
 
 
 def resolve_camera_mode(images: ImageSet, conf: ExtractConfig) -> str:
@@ -86,23 +64,43 @@ def settings_of(conf: ExtractConfig) -> dict:
     return {k: v for k, v in conf.__dict__.items() if not (k in _LATER_SETTINGS and v == _LATER_SETTINGS[k])}
 
 
-def stage_key(images: ImageSet, conf: ExtractConfig, out_dir: Path, *,
-              progress: bool = True) -> tuple[str, dict[str, str] | None, Callable[[], None]]:
+def stage_key(images: ImageSet, conf: ExtractConfig, out_dir: Path, *, progress: bool = True
+              ) -> tuple[str, dict[str, str] | None, Callable[[], None], Callable[[set[str]], str]]:
     """(the stage key: the images' names and contents and the settings, the digest of each image
     (None when an earlier sara's key still holds), a function that saves the images' digests for
-    the next run: to call once the key is accepted).
+    the next run: to call once the key is accepted, a function that gives the key without some
+    images: those the stage sets aside).
 
     Features made by an earlier sara, keyed by the images' sizes and modification times, keep
     that key while those are unchanged.
     """
     settings = settings_of(conf)
+    cache = out_dir / ".sara" / DIGESTS_NAME
+    found: list = []
+
+    def digests() -> tuple[dict[str, str], dict[str, list] | None]:
+        found[:] = found or [content_digests(images, cache, progress=progress)]
+        return found[0]
+
+    def key_without(aside: set[str]) -> str:
+        return fingerprint({"images": [[n, digests()[0][n]] for n in images.names if n not in aside], "conf": settings})
+
     record = records.read_record(out_dir, STAGE)
     if record is not None and record.get("key") == fingerprint({"images": images.fingerprint_data(), "conf": settings}):
-        return record["key"], None, lambda: None
-    cache = out_dir / ".sara" / DIGESTS_NAME
-    digests, entries = content_digests(images, cache, progress=progress)
-    key = fingerprint({"images": [[name, digests[name]] for name in images.names], "conf": settings})
-    return key, digests, lambda: save_digests(cache, entries)
+        return record["key"], None, lambda: None, key_without
+    return key_without(set()), digests()[0], lambda: save_digests(cache, digests()[1]), key_without
+
+
+def _key_as_recorded(record: dict | None, key: str, key_without: Callable[[set[str]], str]) -> str:
+    """The finished stage's key when the images differ from its own only by images it set aside
+    (a file that vanished during extraction and is gone now, or is back): those stay set aside."""
+    if record is None or record.get("done") is not True or record.get("key") == key:
+        return key
+    info = record.get("info", {})
+    aside = set(info.get("skipped") or {})
+    if aside and info.get("usable_key") and key_without(aside) == info["usable_key"]:
+        return record["key"]
+    return key
 
 
 def _check_existing_database(db_path: Path, images: ImageSet) -> bool:
@@ -130,7 +128,8 @@ def run(conf: ExtractConfig, images: ImageSet, out_dir: Path, *, executor: Execu
     """
     out_dir = Path(out_dir)
     db_path, h5_path = out_dir / DB_NAME, out_dir / features_file_name(conf)
-    key, digests, save_digests_ = stage_key(images, conf, out_dir, progress=progress)
+    key, digests, save_digests_, key_without = stage_key(images, conf, out_dir, progress=progress)
+    key = _key_as_recorded(records.read_record(out_dir, STAGE), key, key_without)
     tic = time.perf_counter()
     if not overwrite and records.is_done(out_dir, STAGE, key) and _outputs_intact(out_dir, db_path, h5_path):
         logger.info("extract: features up to date, skipping")
@@ -176,7 +175,7 @@ def run(conf: ExtractConfig, images: ImageSet, out_dir: Path, *, executor: Execu
         info["focal"] = _check_focal(db_path, h5_path, readable.names)
     info.update(camera_mode=camera_mode, backend=conf.backend, features=h5_path.name,
                 skipped={**cannot_read, **failed}, time_s=time.perf_counter() - tic,
-                settings=settings_of(conf), images=digests)
+                settings=settings_of(conf), images=digests, usable_key=key_without(set(cannot_read) | set(failed)))
     records.mark_done(out_dir, STAGE, key, info, outputs=recorded(db_path, h5_path))
     return h5_path
 
@@ -207,9 +206,11 @@ def _check_focal(db_path: Path, h5_path: Path, names: list[str]) -> dict | None:
 
 
 def usable(images: ImageSet, out_dir: Path, *, warn: bool = False) -> ImageSet:
-    """The images of a finished extraction: without those its record lists as unreadable."""
+    """The images of a finished extraction: without those its record lists as unreadable (those
+    gone from the folder since, e.g. vanished during extraction, are still listed as skipped)."""
     skipped = records.done_info(out_dir, STAGE).get("skipped", {})
-    return set_aside(images, {n: r for n, r in skipped.items() if n in images.sizes}, warn=warn)
+    return set_aside(images, {n: r for n, r in skipped.items() if n in images.sizes or n not in images.skipped},
+                     warn=warn)
 
 
 def recorded(db_path: Path, h5_path: Path) -> dict:
@@ -286,34 +287,15 @@ def _failed_in_extraction(images: ImageSet, with_keypoints: set[str], todo: list
 
 
 def _bytes_per_image(conf: ExtractConfig) -> int:
-    """About what one image adds to the database and the features file, in bytes (half the
-    configured maximum of features: (2 + 4) float32 keypoint values, 128 descriptor bytes in the
-    database; float16 descriptors, keypoints and scores in the HDF5 file)."""
-    return conf.max_num_features // 2 * (6 * 4 + 128 + 128 * 2 + 3 * 4)
+    """At most what one image adds to the database and the features file, in bytes: the configured
+    maximum of features ((2 + 4) float32 keypoint values, 128 descriptor bytes in the database;
+    float16 descriptors, keypoints and scores in the HDF5 file). COLMAP aborts the whole process
+    when the database cannot grow, so the check before must not underestimate."""
+    return conf.max_num_features * (6 * 4 + 128 + 128 * 2 + 3 * 4)
 
 
 def _partial(h5_path: Path) -> Path:
     return h5_path.with_name(h5_path.name + ".partial")
-
-
-def load_image(path: Path, max_size: int) -> tuple[np.ndarray, tuple[float, float]]:
-    """(H, W, 3) uint8 RGB pixels as stored (no EXIF rotation, like COLMAP), the longer side at most
-    `max_size`; and the (x, y) factors that take its pixel coordinates back to the full image."""
-    from PIL import Image
-
-    with Image.open(path) as im:
-        im = im.convert("RGB")
-        width, height = im.size
-        scale = min(1.0, max_size / max(width, height))
-        if scale < 1.0:
-            im = im.resize((max(1, round(width * scale)), max(1, round(height * scale))), Image.Resampling.BICUBIC)
-        pixels = np.asarray(im, dtype=np.uint8)
-    return pixels, (width / pixels.shape[1], height / pixels.shape[0])
-
-
-def to_full_resolution(xy: np.ndarray, factors: tuple[float, float]) -> np.ndarray:
-    """hloc-convention pixel coordinates of a resized image -> those of the full image."""
-    return ((np.asarray(xy, np.float64) + 0.5) * np.asarray(factors) - 0.5).astype(np.float32)
 
 
 @dataclass(frozen=True)

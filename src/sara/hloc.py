@@ -240,7 +240,12 @@ def reconstruct(image_dir: Path, features: Path, matches: Path, pairs_path: Path
         keypoints = {n: colmap.hloc_to_colmap_keypoints(read_hloc_features(h5, n).keypoints) for n in names}
     colmap.write_keypoints(db_path, keypoints)
     colmap.write_matches(db_path, dict(_pair_matches(matches, pairs, min_match_score, progress)))
-    colmap.verify_pairs(db_path, Path(pairs_path), min_num_inliers=conf.match.min_num_inliers)
+    # COLMAP reads the pairs as sara read them (a byte-order mark or a score column would mislead it)
+    clean = write_pairs(out_dir / ".pairs-verified.txt", pairs)
+    try:
+        colmap.verify_pairs(db_path, clean, min_num_inliers=conf.match.min_num_inliers)
+    finally:
+        clean.unlink(missing_ok=True)
     num_verified = len(model.database_pairs(db_path)[1])
     logger.info("hloc import: %d images, %d pairs, %d verified", len(names), len(pairs), num_verified)
     key = fingerprint({"files": [_stat(p) for p in (features, matches, Path(pairs_path))], "mode": camera_mode,

@@ -111,7 +111,7 @@ def update_features(conf: ExtractConfig, images: ImageSet, out_dir: Path, *, exe
     record = records.read_record(out_dir, extract.STAGE)
     if record is None or record.get("done") is not True or not (out_dir / extract.DB_NAME).exists():
         return None
-    key, digests, save_digests = extract.stage_key(images, conf, out_dir, progress=progress)
+    key, digests, save_digests, _ = extract.stage_key(images, conf, out_dir, progress=progress)
     if record.get("key") == key or digests is None:
         save_digests()  # the key holds: the extract stage need not read the images again
         if ledger(out_dir).get("phase") == "features":  # images back as they were: the copies are not needed

@@ -30,7 +30,8 @@ PROGRESS_RECORD = "match-progress"
 
 
 NEXT_DB_NAME = "database.next.db"
-#: about what one matched pair adds to the database (matches and inlier matches), bytes
+#: about what one matched pair adds to the database, bytes: matches and inlier matches, 8 bytes
+#: each, for 4,096 of each (SIFT pairs of large images reach that; most hold far fewer)
 BYTES_PER_PAIR = 64 * 1024
 
 
@@ -67,6 +68,11 @@ def run(conf: MatchConfig, pairs_path: Path, db_path: Path, out_dir: Path, *, fe
     matcher = make_matcher(conf, features_backend)  # loads weights: fails here, before any work
     conf_key = fingerprint({**_result_settings(conf), "backend": matcher_name, "features": Path(features_path).name})
     same_settings = not overwrite and records.is_done(out_dir, CONF_RECORD, conf_key)  # of `db_path`'s matches
+    # room for the stage's new matches (and the copy of the database beside) before COLMAP writes
+    # any: it aborts the process when the database cannot grow
+    todo = len(_unmatched(db_path, pairs, names)) if same_settings else len(pairs)
+    copy_bytes = Path(db_path).stat().st_size if beside and before["num_matched_pairs"] > 0 else 0
+    ensure_free_space(out_dir, BYTES_PER_PAIR * todo + copy_bytes)
     kept = {stage: records.read_record(out_dir, stage) for stage in (STAGE, PROGRESS_RECORD)}
     work = _work_database(db_path, next_db, out_dir, key, conf_key, pairs, names, same_settings=same_settings,
                           beside=beside and before["num_matched_pairs"] > 0)

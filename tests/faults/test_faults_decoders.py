@@ -4,9 +4,13 @@ vanished or cannot be decoded, naming why."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 from PIL import Image
+
+from harness import assert_ok, registered
 
 FORMATS = {  # format written under an image extension -> COLMAP's reader decodes it
     ("png", "PNG"): True, ("jpg", "JPEG"): True, ("bmp", "BMP"): True, ("tif", "TIFF"): True,
@@ -50,3 +54,38 @@ def test_learned_extraction_skips_a_vanished_file(tmp_path):
     assert "could not be decoded" in found[2]
 
 
+
+
+def test_image_vanished_during_extraction_stays_set_aside(images, tmp_path, run_cli, monkeypatch):
+    """An image deleted while COLMAP extracts is set aside; the same command again (the file still
+    gone) is accepted, not refused as "other images", and reports it again (issue 30)."""
+    import json
+    import shutil
+
+    from sara import colmap
+
+    folder = Path(shutil.copytree(images, tmp_path / "images"))
+    gone = sorted(folder.iterdir())[3]
+    original = colmap.extract_sift
+
+    def delete_then_extract(db_path, image_dir, names, **kwargs):
+        gone.unlink(missing_ok=True)  # the file vanishes after the checks, while COLMAP reads the images
+        return original(db_path, image_dir, names, **kwargs)
+
+    monkeypatch.setattr(colmap, "extract_sift", delete_then_extract)
+    out = tmp_path / "out"
+    first = run_cli("run", folder, out, "-q")
+    assert_ok(first)
+    monkeypatch.setattr(colmap, "extract_sift", original)
+    reason = "the file disappeared during extraction"
+    assert f"skipping {gone.name}: {reason}" in first.err
+    for _ in range(2):  # the same command, twice: accepted each time, the image still set aside
+        result = run_cli("run", folder, out, "-q")
+        assert_ok(result)
+        assert f"skipping {gone.name}: {reason}" in result.err
+        assert json.loads((out / "run.json").read_text())["skipped_images"] == {gone.name: reason}
+        assert gone.name not in registered(out) and len(registered(out)) == 9
+    shutil.copyfile(sorted(images.iterdir())[3], gone)  # back again: it stays set aside, as documented
+    result = run_cli("run", folder, out, "-q")
+    assert_ok(result)
+    assert json.loads((out / "run.json").read_text())["skipped_images"] == {gone.name: reason}

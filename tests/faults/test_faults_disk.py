@@ -213,3 +213,82 @@ def test_atomic_write_leaves_nothing_when_it_fails(tmp_path):
     assert list(tmp_path.iterdir()) == []
 
 
+
+
+@pytest.mark.parametrize("command", ["match", "map", "run"])
+def test_full_disk_is_not_taken_for_a_damaged_database(command, small_disk, finished_run_template, images):
+    """No byte free: SQLite cannot open the database for writing ("disk I/O error"). Issue 30: that
+    was exit 3, "database.db is damaged ... --overwrite" (advice that would throw the run away)."""
+    out = small_disk / "out"
+    shutil.copytree(finished_run_template, out)
+    _fill(small_disk, 0)
+    before = snapshot(out)
+    args = {"match": ["match", out, "--pairs", out / "pairs.txt"], "map": ["map", out],
+            "run": ["run", images, out, "--pairs", "exhaustive"]}[command]
+    result = sara_process(*args, "-q")
+    line = assert_error(result, 4, "no space left", "free some space")
+    assert "damaged" not in line and "--overwrite" not in line
+    assert_kept(before, out, ("database.db", "sparse", "run.json", "features-sift.h5"))
+
+
+def test_matching_checks_room_for_every_pair_first(finished_run, images, monkeypatch, run_cli):
+    """COLMAP aborts the process when the database cannot grow: the check before matching counts
+    every pair of the stage (and the copy of the database), not only the first chunk's. Issue 30:
+    a disk with room for one chunk let the stage start."""
+    from sara import colmap
+    from sara import io as sara_io
+    from sara.match import BYTES_PER_PAIR
+
+    calls = []
+    monkeypatch.setattr(colmap, "match_pairs", lambda *a, **k: calls.append(a))
+    room_for_one_chunk = sara_io.LOW_SPACE_BYTES + 2 * BYTES_PER_PAIR  # 45 pairs need far more
+    monkeypatch.setattr(sara_io, "free_bytes", lambda path: room_for_one_chunk)
+    before = snapshot(finished_run)
+    result = run_cli("run", images, finished_run, "-q", "--pairs", "exhaustive", "-s", "match.chunk_size=1")
+    assert_error(result, 4, "no space left", "MB are needed", "run the same command again")
+    assert calls == []  # COLMAP never started
+    assert_kept(before, finished_run, PREVIOUS_OUTPUTS)
+
+
+def test_disk_filling_during_extraction(images, tmp_path, monkeypatch, run_cli):
+    """Another program fills the disk while COLMAP extracts: the next chunk is not started (COLMAP
+    would abort the process with a stack dump); one line, exit 4; the same command then resumes."""
+    from sara import colmap
+    from sara import io as sara_io
+
+    original, free = colmap.extract_sift, [10**12]
+    calls_after_full = []
+
+    def extract_then_fill(*args, **kwargs):
+        if free[0] < 10**12:
+            calls_after_full.append(args)
+        original(*args, **kwargs)
+        free[0] = 2 * 2**20  # filled by someone else meanwhile
+
+    monkeypatch.setattr(colmap, "extract_sift", extract_then_fill)
+    monkeypatch.setattr(sara_io, "free_bytes", lambda path: free[0])
+    out = tmp_path / "out"
+    result = run_cli("run", images, out, "-q")
+    assert_error(result, 4, "no space left", "2.1 MB free", "run the same command again")
+    assert calls_after_full == []
+    monkeypatch.undo()
+    assert_ok(run_cli("run", images, out, "-q"))
+    assert len(registered(out)) == len(list(images.iterdir()))
+
+
+def test_worker_that_died_on_a_full_disk_is_one_line(tmp_path, monkeypatch):
+    """A worker process that COLMAP aborted (it cannot write) breaks the pool: said as a full disk
+    where the output folder's disk is full, else as a worker that ended (never a bare traceback)."""
+    import argparse
+    from concurrent.futures.process import BrokenProcessPool
+
+    from sara import io as sara_io
+    from sara.cli.errors import describe_error
+
+    args = argparse.Namespace(out=tmp_path)
+    monkeypatch.setattr(sara_io, "free_bytes", lambda path: 1000)
+    code, line = describe_error(BrokenProcessPool("A child process terminated abruptly"), args)
+    assert code == 4 and "no space left" in line and "run the same command again" in line
+    monkeypatch.setattr(sara_io, "free_bytes", lambda path: 10**12)
+    code, line = describe_error(BrokenProcessPool("A child process terminated abruptly"), args)
+    assert code == 1 and "worker process ended abruptly" in line and "internal error" not in line

@@ -72,6 +72,8 @@ PAIR_FILES = {
     "inner spaces": (["x y.png", "z.png"], "x y.png z.png\n", [("x y.png", "z.png")]),
     "score column": (["x y.png", "z.png"], "x y.png z.png 0.5\n", [("x y.png", "z.png")]),
     "windows line ends": (["a.png", "b.png"], "a.png b.png\r\n", [("a.png", "b.png")]),
+    "byte-order mark": (["a.png", "b.png"], "\ufeffa.png b.png\r\n", [("a.png", "b.png")]),
+    "byte-order mark, unknown names": (None, "\ufeffa.png b.png\n", [("a.png", "b.png")]),
 }
 
 
@@ -85,6 +87,19 @@ def test_pairs_file_never_misreads_a_name(case, tmp_path):
     assert read_pairs(path, known_names=names) == expected
     write_pairs(path, expected)  # and what sara writes reads back the same
     assert read_pairs(path, known_names=names) == expected
+
+
+def test_pairs_file_with_a_byte_order_mark_through_the_cli(finished_run, tmp_path, run_cli):
+    """`sara match OUT --pairs F` with F saved by a Windows editor (UTF-8 with a byte-order mark,
+    CRLF line ends): every pair is matched, the first one too (issue 30: it was refused)."""
+    from sara.io.pairs import read_pairs
+
+    pairs = read_pairs(finished_run / "pairs.txt")
+    path = tmp_path / "pairs-windows.txt"
+    path.write_bytes(b"\xef\xbb\xbf" + "".join(f"{a} {b}\r\n" for a, b in pairs).encode("utf-8"))
+    result = run_cli("match", finished_run, "--pairs", path, "-q")
+    assert_ok(result)
+    assert f"matched {len(pairs)} pairs" in result.out
 
 
 def test_ambiguous_pair_line_is_an_error(tmp_path):

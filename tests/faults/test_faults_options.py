@@ -138,6 +138,50 @@ def test_map_with_a_missing_image_folder(finished_run, tmp_path, run_cli):
     assert_kept(before, finished_run)
 
 
-def test_match_on_a_folder_that_is_not_a_run(tmp_path, run_cli):
-    result = run_cli("match", tmp_path, "-q")
-    assert_error(result, 2, "run `sara extract")
+@pytest.mark.parametrize("command", ["match", "map"])
+def test_match_or_map_where_extract_never_ran(command, tmp_path, run_cli):
+    """An output folder whose extract stage never ran is an earlier stage unfinished: exit 3 for
+    both commands, as the exit-code table says (issue 30: `sara match` gave 2)."""
+    result = run_cli(command, tmp_path, "-q")
+    assert_error(result, 3, "extract stage", "never ran", "sara extract")
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("command", ["match", "map"])
+def test_match_or_map_on_a_missing_folder(command, tmp_path, run_cli):
+    result = run_cli(command, tmp_path / "typo", "-q")
+    assert_error(result, 2, "output folder not found", "typo")
+    assert not (tmp_path / "typo").exists()
+
+
+@pytest.mark.parametrize("case", ["no name in common", "same names, other pixels", "one image edited"])
+def test_map_with_the_images_of_another_scene(case, finished_run, images, tmp_path, run_cli):
+    """`sara map OUT --images F` colours the points from F: F must hold the images the features
+    were made from (issue 30: it exited 0, with black points or another scene's colours)."""
+    from PIL import Image
+
+    folder = tmp_path / "other"
+    if case == "no name in common":
+        folder.mkdir()
+        for k, path in enumerate(sorted(images.iterdir())):
+            shutil.copyfile(path, folder / f"other_{k}.png")
+    elif case == "same names, other pixels":
+        folder.mkdir()
+        for path in sorted(images.iterdir()):
+            Image.open(path).transpose(Image.Transpose.FLIP_LEFT_RIGHT).save(folder / path.name)
+    else:
+        shutil.copytree(images, folder)
+        first = sorted(folder.iterdir())[0]
+        Image.open(first).rotate(5).save(first)
+    before = snapshot(finished_run)
+    result = run_cli("map", finished_run, "--images", folder, "-q")
+    assert_error(result, 2, f"--images {folder}", "not hold the images", "image folder of the extraction")
+    assert_kept(before, finished_run)
+
+
+def test_map_with_a_copy_of_the_images(finished_run, images, tmp_path, run_cli):
+    """A copy of the very images (other times, same bytes) is accepted."""
+    folder = Path(shutil.copytree(images, tmp_path / "copy"))
+    for path in folder.iterdir():
+        os.utime(path, (1, 1))
+    assert_ok(run_cli("map", finished_run, "--images", folder, "-q"))

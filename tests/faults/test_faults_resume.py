@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from harness import assert_error, assert_kept, assert_ok, registered, snapshot, truncate
+from harness import SPACED_NAMES, aliased_in, assert_error, assert_kept, assert_ok, registered, snapshot, truncate
 
 
 def write_record(out: Path, stage: str, **changes) -> None:
@@ -127,3 +127,18 @@ def test_lost_model_is_mapped_again(loss, finished_run, images, finished_run_tem
     assert_kept(before, finished_run, ("pairs.txt", "scores.csv", "features-sift.h5"))
 
 
+def test_aliased_names_left_behind_are_given_back(spaced_folder, tmp_path, run_cli):
+    """The same state made without a race: aliasing entered and never left, as a kill leaves it;
+    `sara run`, `sara match` and `sara map` each find the names again."""
+    from sara.match import space_free_names
+
+    out = tmp_path / "out"
+    assert_ok(run_cli("run", spaced_folder, out, "-q"))
+    left = []  # held, so that no clean-up runs when the generator is collected
+    for command in (["run", spaced_folder, out], ["match", out], ["map", out]):
+        left.append(space_free_names(out / "database.db", out))
+        left[-1].__enter__()  # noqa: PLC2801 - as a kill leaves it: the exit never runs
+        assert aliased_in(out / "database.db")
+        assert_ok(run_cli(*command, "-q"))
+        assert not aliased_in(out / "database.db")
+    assert set(SPACED_NAMES) <= set(registered(out))

@@ -133,11 +133,30 @@ def describe_error(exc: BaseException, args: argparse.Namespace | None = None) -
     if isinstance(exc, MemoryError):
         return EXIT_FILESYSTEM, ("out of memory; use fewer workers (--workers) or smaller images "
                                  "(-s extract.max_image_size=...)")
+    from concurrent.futures.process import BrokenProcessPool
+
+    if isinstance(exc, BrokenProcessPool):
+        return _worker_died(args)
     from ..colmap import ColmapError
 
     if isinstance(exc, ColmapError):
         return EXIT_INTERNAL, text
     return EXIT_INTERNAL, internal_error_line(exc)
+
+
+def _worker_died(args: argparse.Namespace | None) -> tuple[int, str]:
+    """A worker process ended by a signal (a native abort, the kernel's out-of-memory killer):
+    a full disk of the output folder is said as such (COLMAP aborts when it cannot write)."""
+    from ..io import LOW_SPACE_BYTES, free_bytes
+
+    out = getattr(args, "out", None)
+    if out is not None and free_bytes(out) < LOW_SPACE_BYTES:
+        return EXIT_FILESYSTEM, (f"no space left on the device of {out} ({free_bytes(out) / 1e6:.1f} MB free): a "
+                                 "worker process ended when it could not write; free some space and run the same "
+                                 "command again to resume")
+    return EXIT_INTERNAL, ("a worker process ended abruptly (killed, out of memory, or a crash in a native "
+                           "library); run the same command again to resume, with fewer workers (--workers) if "
+                           "memory is short")
 
 
 def internal_error_line(exc: BaseException) -> str:

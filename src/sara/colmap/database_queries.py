@@ -11,7 +11,7 @@ from typing import Any
 
 import pycolmap
 
-from ..io import DamagedOutputError, fingerprint
+from ..io import LOW_SPACE_BYTES, DamagedOutputError, disk_full_error, fingerprint, free_bytes
 
 _DB_TABLES = ("images", "keypoints", "descriptors", "matches", "two_view_geometries")
 
@@ -46,7 +46,9 @@ def _query(db_path: Path, *queries: tuple[str, tuple]) -> list[list[tuple]]:
             finally:
                 con.close()
         except sqlite3.OperationalError as exc:
-            if mode == "ro" or not any(w in str(exc) for w in ("readonly", "read-only", "unable to open")):
+            # read-only too where read-write fails: a read-only folder, a full disk (SQLite then
+            # says "disk I/O error" when it cannot make its journal)
+            if mode == "ro" or not any(w in str(exc) for w in ("readonly", "read-only", "unable to open", "I/O")):
                 raise
     raise AssertionError("unreachable")
 
@@ -78,6 +80,8 @@ def database_summary(db_path: Path) -> dict[str, Any] | None:
             ("SELECT pair_id, rows FROM matches ORDER BY pair_id", ()),
             ("SELECT pair_id, rows, config FROM two_view_geometries ORDER BY pair_id", ()))
     except sqlite3.DatabaseError as exc:
+        if free_bytes(db_path.parent) < LOW_SPACE_BYTES:  # a full disk, not a damaged file
+            raise disk_full_error(db_path.parent) from None
         raise DamagedOutputError(f"{db_path} is damaged ({exc})") from None
     names = dict(images)
     return {

@@ -14,8 +14,12 @@ from tqdm import tqdm
 
 from .. import colmap
 from ..config import ExtractConfig
+from ..io import ensure_free_space
 from ..io.images import ImageSet
 from . import Keypoints
+
+#: at most what one keypoint adds to COLMAP's database: (x, y, a11, a12, a21, a22) float32, 128 bytes
+DB_BYTES_PER_KEYPOINT = 6 * 4 + 128
 
 
 class ColmapSift:
@@ -36,6 +40,9 @@ class ColmapSift:
         with tqdm(total=len(names), desc="extract SIFT", unit="img", disable=not progress) as bar:
             for start in range(0, len(names), chunk):
                 part = names[start:start + chunk]
+                # COLMAP aborts the process when the database cannot grow: check before each chunk,
+                # so that a disk filled by something else meanwhile ends in a clean error
+                ensure_free_space(Path(db_path).parent, DB_BYTES_PER_KEYPOINT * conf.max_num_features * len(part))
                 colmap.extract_sift(db_path, images.root, part, max_image_size=conf.max_image_size,
                                     max_num_features=conf.max_num_features, camera_model=conf.camera_model,
                                     camera_params=conf.camera_params, num_threads=conf.num_threads)

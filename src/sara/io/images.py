@@ -9,6 +9,7 @@ import unicodedata
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
 from tqdm import tqdm
 
 from . import read_json, write_json_atomic
@@ -34,6 +35,7 @@ class ImageSet:
     sizes: dict[str, tuple[int, int]]
     skipped: dict[str, str] = field(default_factory=dict)
     orientation: dict[str, int] = field(default_factory=dict)  # EXIF orientation, only where not 1
+    needs_copy: set[str] = field(default_factory=set)  # formats COLMAP cannot read (HEIC): used from a copy
 
     def fingerprint_data(self) -> list[tuple[str, int, int]]:
         """Names, file sizes in bytes and modification times: what identified the set for the
@@ -102,28 +104,135 @@ def save_digests(cache_path: Path, entries: dict[str, list] | None) -> None:
         write_json_atomic(Path(cache_path), entries)
 
 
-def list_image_files(root: Path, *, recursive: bool = False) -> list[str]:
+def folder_mismatch(root: Path, cache_path: Path, *, rotated: frozenset[str] = frozenset()) -> str | None:
+    """Why the images in `root` are not those whose digests `cache_path` holds (None when they are).
+
+    `cache_path` is the digest cache `content_digests` keeps for a run's images. None of its
+    names in `root`, or an image whose bytes differ, is a mismatch; images missing from `root`
+    are not (a file removed since). `rotated`: names whose digest is that of an upright copy made
+    by sara, which cannot be compared with the original. A missing or unreadable cache: None.
+    """
+    try:
+        cached = read_json(Path(cache_path))
+    except (OSError, ValueError, UnicodeDecodeError):
+        return None
+    if not isinstance(cached, dict) or not cached:
+        return None
+    present = [name for name in sorted(cached) if (Path(root) / name).is_file()]
+    if not present:
+        return f"none of its images is in {root} (e.g. {next(iter(sorted(cached)))!r})"
+    for name in present:
+        entry, st = cached[name], (Path(root) / name).stat()
+        if name in rotated or not isinstance(entry, list) or len(entry) != 3:
+            continue
+        if entry[:2] != [st.st_size, st.st_mtime_ns] and _sha256(Path(root) / name) != entry[2]:
+            return f"{root / name} is not the image of that name the features were made from"
+    return None
+
+
+#: HEIC photos (phones) are read through pillow-heif, an optional extra
+HEIC_EXTENSIONS = (".heic", ".heif")
+HEIC_MISSING = "HEIC photo: install pillow-heif (pip install 'sara[heic]') to use it"
+#: image formats sara does not read, named so that the warning says what they are
+OTHER_IMAGE_FORMATS = (".gif", ".webp", ".avif", ".jxl", ".jp2", ".psd", ".svg", ".exr", ".hdr", ".dng", ".raw",
+                       ".cr2", ".cr3", ".nef", ".arw", ".orf", ".rw2")
+#: what marks a folder as a sara output folder (never scanned for images: it holds sara's own copies)
+OUTPUT_MARKERS = (".sara", ".sara.lock")
+
+
+def heic_supported() -> bool:
+    """Whether HEIC photos can be decoded (pillow-heif importable; its Pillow plug-in is registered)."""
+    try:
+        import pillow_heif
+    except ImportError:
+        return False
+    pillow_heif.register_heif_opener()
+    return True
+
+
+def _is_output_folder(folder: Path, out_dir: Path | None) -> bool:
+    if any((folder / marker).exists() for marker in OUTPUT_MARKERS):
+        return True
+    return out_dir is not None and folder.resolve() == Path(out_dir).resolve()
+
+
+def _all_files(root: Path, recursive: bool, out_dir: Path | None) -> list[str]:
+    """Names (relative, POSIX) of every file under `root`, broken links included; hidden folders
+    and sara output folders (`out_dir`, or one with sara's marker) are not entered, the latter
+    with one warning each."""
+    if not recursive:
+        return [entry.name for entry in root.iterdir() if not entry.is_dir()]
+    names = []
+    for dirpath, dirnames, filenames in os.walk(root):
+        kept = []
+        for dirname in sorted(d for d in dirnames if not d.startswith(".")):
+            if _is_output_folder(Path(dirpath) / dirname, out_dir):
+                logger.warning("not looking for images in %s: a sara output folder (sara's own copies of the "
+                               "images are there)", Path(dirpath) / dirname)
+            else:
+                kept.append(dirname)
+        dirnames[:] = kept
+        names += [(Path(dirpath) / fname).relative_to(root).as_posix() for fname in filenames]
+    return names
+
+
+def not_used_reason(root: Path, name: str, *, heic: bool = False) -> str | None:
+    """Why a file of the folder is not an image sara reads (None for an image file to check)."""
+    path, lower = Path(root) / name, name.lower()
+    if path.is_symlink() and not path.exists():
+        return "broken symbolic link (its target is missing)"
+    if lower.endswith(IMAGE_EXTENSIONS) or (heic and lower.endswith(HEIC_EXTENSIONS)):
+        return None
+    stripped = lower.rstrip()
+    if stripped != lower and stripped.endswith(IMAGE_EXTENSIONS + HEIC_EXTENSIONS):
+        return f"blank characters after its extension ({Path(name).name!r}); rename it to use it"
+    if lower.endswith(HEIC_EXTENSIONS):
+        return HEIC_MISSING
+    suffix = Path(lower).suffix
+    if suffix in OTHER_IMAGE_FORMATS:
+        return f"a {suffix} file, a format sara does not read; convert it to JPEG or PNG to use it"
+    return "not an image file"
+
+
+def _summary_label(reason: str) -> str:
+    for start, label in (("broken", "broken link"), ("blank", "blank after the extension"),
+                         ("HEIC", "HEIC photo (pip install 'sara[heic]')"), ("a .", "unsupported image format"),
+                         ("not an image", "not an image")):
+        if reason.startswith(start):
+            return label
+    return reason
+
+
+def summarise_not_used(reasons: dict[str, str]) -> str:
+    """`3 broken link, 1 not an image`: counts by kind of the files not used."""
+    counts: dict[str, int] = {}
+    for reason in reasons.values():
+        counts[_summary_label(reason)] = counts.get(_summary_label(reason), 0) + 1
+    return ", ".join(f"{n} {label}" for label, n in sorted(counts.items(), key=lambda kv: (-kv[1], kv[0])))
+
+
+def list_image_files(root: Path, *, recursive: bool = False, out_dir: Path | None = None,
+                     not_used: dict[str, str] | None = None) -> list[str]:
     """Names (relative, POSIX) of files with an image extension under `root`, sorted.
 
     Hidden files (a name starting with '.') are listed too, so that the scan can say it skips
-    them; hidden folders are not entered.
+    them; hidden folders and sara output folders are not entered. `not_used`, when given,
+    receives every other file of the folder with the reason it is not used (`not_used_reason`).
     """
     root = Path(root)
     if not root.exists():
         raise FileNotFoundError(f"image folder not found: {root}")
     if not root.is_dir():
         raise NotADirectoryError(f"not a folder: {root} (give the folder that holds the images)")
+    files = _all_files(root, recursive, out_dir)
+    heic = any(n.lower().endswith(HEIC_EXTENSIONS) for n in files) and heic_supported()
     names = []
-    if recursive:
-        for dirpath, dirnames, filenames in os.walk(root):
-            dirnames[:] = sorted(d for d in dirnames if not d.startswith("."))
-            for fname in filenames:
-                if fname.lower().endswith(IMAGE_EXTENSIONS):
-                    names.append((Path(dirpath) / fname).relative_to(root).as_posix())
-    else:
-        for entry in root.iterdir():
-            if entry.suffix.lower() in IMAGE_EXTENSIONS and entry.is_file():
-                names.append(entry.name)
+    for name in files:
+        reason = not_used_reason(root, name, heic=heic)
+        if reason is None:
+            names.append(name)
+        elif not_used is not None:
+            not_used[name] = reason
     return sorted(names)
 
 
@@ -175,22 +284,32 @@ def set_aside(images: ImageSet, reasons: dict[str, str], *, warn: bool = True) -
     skipped = {**images.skipped, **{display_name(n): r for n, r in reasons.items()}}
     return ImageSet(root=images.root, names=[n for n in images.names if n not in reasons],
                     sizes={n: s for n, s in images.sizes.items() if n not in reasons}, skipped=skipped,
-                    orientation={n: o for n, o in images.orientation.items() if n not in reasons})
+                    orientation={n: o for n, o in images.orientation.items() if n not in reasons},
+                    needs_copy=images.needs_copy - set(reasons))
 
 
-def scan_images(root: Path, *, recursive: bool = False, progress: bool = True) -> ImageSet:
+def scan_images(root: Path, *, recursive: bool = False, progress: bool = True,
+                out_dir: Path | None = None) -> ImageSet:
     """List and check the images of a folder; unusable ones are skipped with one warning each.
 
     An image is skipped when its name cannot go through sara's files (see `sara.io.pairs.name_problem`:
-    control characters, bytes that are not UTF-8) or when Pillow cannot decode it. Raises ValueError
-    when no usable image is left.
+    control characters, bytes that are not UTF-8) or when Pillow cannot decode it. Every other file
+    of the folder (not an image, a format sara does not read, a broken link) is skipped too, with
+    one warning line for all, counted by reason. `out_dir` (the run's output folder) and any other
+    sara output folder are never scanned. Raises ValueError when no usable image is left.
     """
     root = Path(root)
-    candidates = list_image_files(root, recursive=recursive)
+    not_used: dict[str, str] = {}
+    candidates = list_image_files(root, recursive=recursive, out_dir=out_dir, not_used=not_used)
+    if not_used:
+        logger.warning("%d file(s) in %s not used: %s (each listed with its reason in run.json, skipped_images)",
+                       len(not_used), root, summarise_not_used(not_used))
     if not candidates:
         hint = "" if recursive else " (use --recursive to look into sub-folders)"
-        raise ValueError(f"no images found in {root}; looked for {', '.join(IMAGE_EXTENSIONS)}{hint}")
-    names, sizes, skipped, orientation = [], {}, {}, {}
+        found = f"; found only: {summarise_not_used(not_used)}" if not_used else ""
+        raise ValueError(f"no images found in {root}; looked for {', '.join(IMAGE_EXTENSIONS)}{hint}{found}")
+    names, sizes, orientation, needs_copy = [], {}, {}, set()
+    skipped = {display_name(n): r for n, r in sorted(not_used.items())}
     for name in tqdm(candidates, desc="check images", unit="img", disable=not progress):
         reason = HIDDEN_REASON if Path(name).name.startswith(".") else name_problem(name)
         size, orient = None, 1
@@ -204,38 +323,96 @@ def scan_images(root: Path, *, recursive: bool = False, progress: bool = True) -
         sizes[name] = size
         if orient != 1:
             orientation[name] = orient
+        if name.lower().endswith(HEIC_EXTENSIONS):
+            needs_copy.add(name)
     if not names:
         raise ValueError(f"none of the {len(candidates)} image files in {root} could be used (see the warnings)")
-    return ImageSet(root=root, names=names, sizes=sizes, skipped=skipped, orientation=orientation)
+    return ImageSet(root=root, names=names, sizes=sizes, skipped=skipped, orientation=orientation,
+                    needs_copy=needs_copy)
 
 
-def upright_copy(images: ImageSet, folder: Path, *, progress: bool = True) -> ImageSet:
-    """An ImageSet in `folder` where EXIF-rotated images are stored upright (others are linked).
+def upright_copy(images: ImageSet, folder: Path, *, rotate: bool = True, progress: bool = True) -> ImageSet:
+    """An ImageSet in `folder`: with `rotate`, EXIF-rotated images stored upright; images COLMAP
+    cannot read (`needs_copy`, HEIC) stored as JPEG under their own names; the others linked.
 
     COLMAP uses the stored pixels and ignores the EXIF orientation tag; tools that honour the tag
     would then see other pixels than the model was made from. This makes both agree.
     """
-    from PIL import Image, ImageOps
+    from PIL import Image
 
     folder = Path(folder)
     sizes = dict(images.sizes)
+    recode = set(images.needs_copy) | (set(images.orientation) if rotate else set())
     for name in tqdm(images.names, desc="upright images", unit="img", disable=not progress):
         src, dst = images.root / name, folder / name
-        if dst.exists() or dst.is_symlink():
-            if name not in images.orientation or dst.stat().st_mtime >= src.stat().st_mtime:
-                if name in images.orientation:
-                    with Image.open(dst) as im:
-                        sizes[name] = im.size
-                continue
-            dst.unlink()
+        if name not in recode and dst.is_symlink():
+            continue
+        if name in recode and dst.is_file() and not dst.is_symlink() and dst.stat().st_mtime >= src.stat().st_mtime:
+            with Image.open(dst) as im:
+                sizes[name] = im.size
+            continue
+        dst.unlink(missing_ok=True)
         dst.parent.mkdir(parents=True, exist_ok=True)
-        if name not in images.orientation:
+        if name not in recode:
             dst.symlink_to(src.resolve())
             continue
-        with Image.open(src) as im:
-            upright = ImageOps.exif_transpose(im)
-            tmp = dst.with_name(f".{dst.name}.tmp{dst.suffix}")
-            upright.save(tmp, quality=95)
-            tmp.replace(dst)
-            sizes[name] = upright.size
+        sizes[name] = _recode(src, dst, rotate=rotate and name in images.orientation,
+                              as_jpeg=name in images.needs_copy)
     return ImageSet(root=folder, names=list(images.names), sizes=sizes, skipped=dict(images.skipped))
+
+
+def _recode(src: Path, dst: Path, *, rotate: bool, as_jpeg: bool) -> tuple[int, int]:
+    """Write the pixels of `src` to `dst` (upright with `rotate`; JPEG whatever the name with
+    `as_jpeg`: COLMAP's reader goes by the content); returns their (width, height)."""
+    from PIL import Image, ImageOps
+
+    with Image.open(src) as im:
+        pixels = ImageOps.exif_transpose(im) if rotate else im
+        if as_jpeg and pixels.mode not in ("RGB", "L"):
+            pixels = pixels.convert("RGB")
+        tmp = dst.with_name(f".{dst.name}.tmp{dst.suffix}")
+        pixels.save(tmp, format="JPEG" if as_jpeg else None, quality=95)
+        tmp.replace(dst)
+        return pixels.size
+
+
+def exif_camera(path: Path) -> tuple[str | None, str | None, float | None]:
+    """(make, model, focal length in mm) from EXIF, each None where absent or unreadable."""
+    from PIL import Image
+
+    try:
+        with Image.open(path) as im:
+            exif = im.getexif()
+            make, model = exif.get(0x010F), exif.get(0x0110)
+            focal = exif.get_ifd(0x8769).get(0x920A) or exif.get(0x920A)
+    except Exception:  # noqa: BLE001 - EXIF is optional; any failure means "no EXIF"
+        return None, None, None
+    try:
+        focal_mm = float(focal) if focal else None
+    except (TypeError, ValueError, ZeroDivisionError):
+        focal_mm = None
+
+    def text(value: object) -> str | None:
+        return str(value).strip("\x00 ").strip() or None if value else None
+
+    return text(make), text(model), focal_mm
+
+
+def load_image(path: Path, max_size: int) -> tuple[np.ndarray, tuple[float, float]]:
+    """(H, W, 3) uint8 RGB pixels as stored (no EXIF rotation, like COLMAP), the longer side at most
+    `max_size`; and the (x, y) factors that take its pixel coordinates back to the full image."""
+    from PIL import Image
+
+    with Image.open(path) as im:
+        im = im.convert("RGB")
+        width, height = im.size
+        scale = min(1.0, max_size / max(width, height))
+        if scale < 1.0:
+            im = im.resize((max(1, round(width * scale)), max(1, round(height * scale))), Image.Resampling.BICUBIC)
+        pixels = np.asarray(im, dtype=np.uint8)
+    return pixels, (width / pixels.shape[1], height / pixels.shape[0])
+
+
+def to_full_resolution(xy: np.ndarray, factors: tuple[float, float]) -> np.ndarray:
+    """hloc-convention pixel coordinates of a resized image -> those of the full image."""
+    return ((np.asarray(xy, np.float64) + 0.5) * np.asarray(factors) - 0.5).astype(np.float32)

@@ -68,7 +68,7 @@ def read_pairs(path: Path, known_names: Iterable[str] | None = None) -> list[Pai
     if not path.exists():
         raise FileNotFoundError(f"pairs file not found: {path}")
     try:
-        text = path.read_text(encoding="utf-8")
+        text = path.read_text(encoding="utf-8-sig")  # a byte-order mark (Windows editors) is not part of a name
     except UnicodeDecodeError:
         raise ValueError(f"pairs file {path} is not UTF-8 text (expected 'name0 name1' per line)") from None
     known = set(known_names) if known_names is not None else None

@@ -40,7 +40,7 @@ def run(conf: PipelineConfig, images_root: Path, out_dir: Path, *, gt_dir: Path 
     preflight(conf)  # a bad option or --pairs fails before any work
     if gt_dir is not None:
         _check_ground_truth(Path(gt_dir), images_root)
-    images = scan_images(images_root, recursive=conf.images.recursive, progress=progress)
+    images = scan_images(images_root, recursive=conf.images.recursive, progress=progress, out_dir=out_dir)
     if stop_after != "extract" and len(images.names) < 2:
         raise ValueError(f"only one usable image in {images_root} ({images.names[0]}): a reconstruction needs "
                          "at least 2")
@@ -177,7 +177,9 @@ def map_model(conf: PipelineConfig, images_root: Path, out_dir: Path, *, db_path
 def recover(out_dir: Path) -> None:
     """Finish or undo what a run killed between two swaps left (call it holding the lock): the
     previous `sparse/` when the new one never arrived; a round's `pairs.txt` whose ledger was
-    already written."""
+    already written; image names aliased for COLMAP's pair importer (before any stage compares
+    the database with its record)."""
+    match.restore_names([out_dir / extract.DB_NAME, out_dir / ".sara" / match.NEXT_DB_NAME], out_dir)
     mapping.recover(out_dir)
     rounds.recover(out_dir)
 
@@ -229,15 +231,21 @@ def _check_ground_truth(gt_dir: Path, images_root: Path, names: list[str] | None
 
 
 def _handle_orientation(mode: str, images: ImageSet, out_dir: Path, progress: bool) -> ImageSet:
+    """The images the stages read: with `apply`, EXIF-rotated ones from upright copies; HEIC
+    photos (which COLMAP cannot read) from JPEG copies, both in `out_dir/images_upright`."""
     if mode not in ("ignore", "apply"):
         raise ValueError(f"images.exif_orientation must be ignore or apply, not {mode!r}")
-    if not images.orientation:
-        return images
-    if mode == "apply":
+    rotate = mode == "apply" and bool(images.orientation)
+    if rotate:
         logger.warning("%d images carry an EXIF rotation: reconstructing from upright copies in %s",
                        len(images.orientation), out_dir / "images_upright")
-        return upright_copy(images, out_dir / "images_upright", progress=progress)
-    logger.warning("%d images carry an EXIF rotation (e.g. %s); like COLMAP, sara uses the stored pixels. "
-                   "Use -s images.exif_orientation=apply for upright copies", len(images.orientation),
-                   next(iter(images.orientation)))
-    return images
+    elif images.orientation:
+        logger.warning("%d images carry an EXIF rotation (e.g. %s); like COLMAP, sara uses the stored pixels. "
+                       "Use -s images.exif_orientation=apply for upright copies", len(images.orientation),
+                       next(iter(images.orientation)))
+    if images.needs_copy:
+        logger.info("%d HEIC photos: reconstructing from JPEG copies in %s", len(images.needs_copy),
+                    out_dir / "images_upright")
+    if not rotate and not images.needs_copy:
+        return images
+    return upright_copy(images, out_dir / "images_upright", rotate=rotate, progress=progress)

@@ -12,6 +12,7 @@ from .. import colmap, extract, mapping, match
 from ..config import PipelineConfig
 from ..features import features_file_name
 from ..io import DamagedOutputError, IncompleteStageError, OutputLock, link_or_copy, read_json, records
+from ..io.images import folder_mismatch
 from . import pairs_stage
 from .run import map_model, match_pairs, preflight, recover
 
@@ -27,9 +28,14 @@ def load_run(out_dir: Path) -> dict[str, Any]:
 
 
 def _require_database(out_dir: Path, hint: str) -> Path:
-    db = Path(out_dir) / extract.DB_NAME
+    """OUT's database; a missing OUT is bad usage (exit 2), an OUT where the extract stage never
+    made one is an earlier stage unfinished (exit 3, as `sara map` after an unfinished match)."""
+    out_dir = Path(out_dir)
+    if not out_dir.is_dir():
+        raise FileNotFoundError(f"output folder not found: {out_dir} ({hint})")
+    db = out_dir / extract.DB_NAME
     if not db.exists():
-        raise FileNotFoundError(f"{db} not found: {hint}")
+        raise IncompleteStageError(f"the extract stage in {out_dir} never ran (no {db.name}): {hint}")
     return db
 
 
@@ -77,9 +83,11 @@ def map_only(conf: PipelineConfig, out_dir: Path, images_root: Path | None = Non
     """
     out_dir = Path(out_dir)
     db = _require_database(out_dir, "run `sara extract` and `sara match` first")
+    given = images_root is not None
     images_root = Path(images_root or load_run(out_dir)["images_root"])
     if not images_root.is_dir():
         raise FileNotFoundError(f"image folder {images_root} not found: give it with --images")
+    _check_image_folder(out_dir, images_root, f"--images {images_root}" if given else f"the image folder {images_root}")
     preflight(dataclasses.replace(conf, pairs=dataclasses.replace(conf.pairs, method="exhaustive")))
     with OutputLock(out_dir, clean=True):
         recover(out_dir)
@@ -95,6 +103,18 @@ def map_only(conf: PipelineConfig, out_dir: Path, images_root: Path | None = Non
         colmap.send_log_to(out_dir / "logs", verbose=verbose_colmap)
         map_model(conf, images_root, out_dir, progress=progress)
     return records.done_info(out_dir, mapping.STAGE)
+
+
+def _check_image_folder(out_dir: Path, images_root: Path, what: str) -> None:
+    """The images mapping reads (for the colours of the points) must be those the features were
+    made from: another scene's folder, or one whose images share their names only, is refused."""
+    upright = out_dir / "images_upright"  # EXIF-rotated images re-encoded upright by sara
+    rotated = frozenset(p.relative_to(upright).as_posix() for p in upright.rglob("*")
+                        if p.is_file() and not p.is_symlink()) if upright.is_dir() else frozenset()
+    problem = folder_mismatch(images_root, out_dir / ".sara" / extract.DIGESTS_NAME, rotated=rotated)
+    if problem is not None:
+        raise ValueError(f"{what} does not hold the images {out_dir} was made from: {problem}; "
+                         "give the image folder of the extraction with --images")
 
 
 def share_features(features_dir: Path, out_dir: Path) -> bool:
