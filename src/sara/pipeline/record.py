@@ -70,6 +70,9 @@ def collect_stages(report: RunReport, selection_key: str) -> None:
         # the estimates of the same matchings, made from each one's first chunk
         matched["estimate_s"] = (ledger.get("first_match_estimate_s", ledger["first_match_time_s"])
                                  + before.get("match_estimate_s", 0.0) + ledger.get("match_estimate_s", 0.0))
+        # the rates of the first matching, not of the last round's few pairs
+        matched["rate_pairs_per_s"] = ledger.get("first_match_rate_pairs_per_s", matched.get("rate_pairs_per_s"))
+        matched.pop("estimate_rate_pairs_per_s", None)
     if "first_map_time_s" in ledger:
         mapped["time_s"] = ledger["first_map_time_s"] + ledger.get("map_time_s", 0.0)
     report.stages.update(pairs=pairs, match=matched, map=mapped)

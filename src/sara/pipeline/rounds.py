@@ -210,9 +210,9 @@ def _one_round(run: RoundsRun, info: dict[str, Any]) -> bool:
     limit = budget.pairs_that_fit()
     total_s = None if math.isinf(budget.total_s) else budget.total_s
     if limit == 0:
-        logger.info("rounds: their time is spent (%s of %s, rounds.max_time_fraction of the first round's match "
-                    "and map time): no more rounds", eta.format_duration(budget.spent_s),
-                    eta.format_duration(budget.total_s))
+        logger.info("rounds: %s of their time budget of %s taken (rounds.max_time_fraction of the first round's "
+                    "match and map time), too little left to match a pair: no more rounds",
+                    eta.format_duration(budget.spent_s), eta.format_duration(budget.total_s))
         return _stop(run, "time budget spent", total_s)
     tic = time.perf_counter()
     pairs = read_pairs(out_dir / PAIRS_NAME, known_names=run.ctx.names)
