@@ -134,3 +134,16 @@ def test_the_rounds_stop_when_their_time_is_spent_and_do_not_repeat_a_round_with
     assert rounds["stopped"] == "a round without gain asked for again" and rounds["unproductive_roles"] == ["toy"]
     assert rounds["history"][0]["registered"] == [10, 10] and rounds["history"][0]["gain"] is False
     assert rounds["time_budget_s"] is None  # 0: no limit
+
+
+def test_the_first_chunk_is_small_so_that_the_estimate_comes_early():
+    from sara.match import chunked
+
+    pairs = [(f"a{k}", f"b{k}") for k in range(1081)]
+    chunks = chunked(pairs, 128)
+    assert [len(c) for c in chunks[:2]] == [55, 128] and sum(map(len, chunks)) == 1081
+    assert [p for c in chunks for p in c] == pairs  # every pair once, in order
+    assert [len(c) for c in chunked(pairs[:55], 128)] == [8, 47]
+    assert [len(c) for c in chunked(pairs[:5], 128)] == [5]
+    assert [len(c) for c in chunked(pairs[:20], 4)] == [4] * 5  # never above a chunk
+    assert chunked([], 128) == []

@@ -208,7 +208,7 @@ def _match_all(conf: MatchConfig, matcher: Matcher, features_backend: str, featu
         # a few chunks per worker, so that no worker idles at the end while another finishes a
         # chunk of harder pairs (LightGlue's time per pair varies several-fold with the overlap)
         size = max(1, min(size, math.ceil(len(todo) / (workers * CHUNKS_PER_WORKER))))
-    chunks = [todo[k:k + size] for k in range(0, len(todo), size)]
+    chunks = chunked(todo, size)
     if len(chunks) > 1:
         logger.info("match: %s pairs to match%s; an estimate of the time follows the first chunk", f"{len(todo):,}",
                     f" ({len(pairs) - len(todo):,} matched before)" if len(todo) < len(pairs) else "")
@@ -251,6 +251,18 @@ def _estimate_info(estimate: eta.Estimate | None, num_done: int, elapsed_s: floa
         return {}
     return {"estimate_s": estimate.seconds, "estimate_rate_pairs_per_s": estimate.rate_pairs_per_s,
             "rate_pairs_per_s": num_done / max(elapsed_s - estimate.earlier_s, 1e-6)}
+
+
+#: the first chunk, whose rate gives the estimate of the time: about this share of the pairs, at
+#: least MIN_FIRST_CHUNK pairs, at most a chunk, so that the estimate comes within seconds
+FIRST_CHUNK_SHARE = 0.05
+MIN_FIRST_CHUNK = 8
+
+
+def chunked(todo: list[Pair], size: int) -> list[list[Pair]]:
+    """`todo` in chunks of `size` pairs after a smaller first chunk (`FIRST_CHUNK_SHARE`)."""
+    first = min(size, max(MIN_FIRST_CHUNK, math.ceil(FIRST_CHUNK_SHARE * len(todo))))
+    return [todo[:first]] + [todo[k:k + size] for k in range(first, len(todo), size)] if todo else []
 
 
 @dataclass(frozen=True)
