@@ -1,9 +1,10 @@
 """How long work will take: the matching time estimated from its first chunk, durations in words,
 and the time budget of the rounds after the first mapping. A leaf (standard library only).
 
-The first chunk of a matching is a fair sample of its pairs (chunks follow the pairs file, not a
-ranking), so its rate predicts the rest; it also carries the fixed costs of a start (loading the
-matcher, opening files), so the estimate errs on the long side for short matchings.
+The first chunk of a matching (about 5% of its pairs, `sara.match.chunked`) is a sample of its
+pairs in the order of the pairs file, so its rate predicts the rest; it also carries the fixed costs
+of a start (loading the matcher, opening files), so the estimate errs on the long side for short
+matchings.
 """
 
 from __future__ import annotations
