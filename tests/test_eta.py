@@ -30,6 +30,22 @@ def test_the_estimate_scales_the_first_chunk_to_all_pairs():
         eta.from_first_chunk(10, 0, 1.0)
 
 
+def test_a_cost_per_image_and_call_weighs_the_chunks():
+    """COLMAP's matcher builds each image's index once per call: a first chunk of exhaustive pairs
+    (a star around the first image) touches more images per pair than the chunks after it."""
+    names = [f"i{k:02d}" for k in range(11)]
+    pairs = [(a, b) for i, a in enumerate(names) for b in names[i + 1:]]  # 55, exhaustive order
+    chunks = [pairs[:8], pairs[8:]]
+    assert eta.chunk_work(chunks, 0.0) == [8, 47]
+    assert eta.chunk_work(chunks, 1.5) == [8 + 1.5 * 9, 47 + 1.5 * 11]
+    work = eta.chunk_work(chunks, 1.5)
+    # fountain-P11's first chunk took 23.6 s: 55 / 8 of it would be 162 s, the work says 92 s
+    est = eta.from_first_chunk(55, 8, 23.6, work_ratio=sum(work) / work[0])
+    assert est.seconds == pytest.approx(23.6 * (55 + 1.5 * 20) / (8 + 1.5 * 9))
+    assert est.rate_pairs_per_s == pytest.approx(55 / est.seconds)
+    assert est.seconds < eta.from_first_chunk(55, 8, 23.6).seconds
+
+
 @pytest.mark.parametrize("seconds, words", [
     (0.04, "0.0 s"), (2.46, "2.5 s"), (9.94, "9.9 s"), (10.2, "10 s"), (59.4, "59 s"), (59.6, "1 min"),
     (190.4, "3 min 10 s"), (3599.4, "59 min 59 s"), (3600, "1 h"), (7530, "2 h 6 min"), (86400 * 2, "48 h")])

@@ -29,17 +29,27 @@ class Estimate:
 
 
 def from_first_chunk(num_pairs: int, chunk_pairs: int, chunk_s: float, *, concurrency: int = 1,
-                     earlier_s: float = 0.0) -> Estimate:
+                     earlier_s: float = 0.0, work_ratio: float | None = None) -> Estimate:
     """The estimate once the first chunk of `chunk_pairs` pairs came back after `chunk_s` seconds.
 
     concurrency: chunks that run at the same time (a pool's workers, at most the number of chunks):
     when the first one comes back, about that many are done. earlier_s: time that interrupted runs
-    already spent on these pairs, counted in the whole.
+    already spent on these pairs, counted in the whole. work_ratio: the work of all chunks over
+    the first one's where it is not in proportion to the pairs (`chunk_work`); default
+    num_pairs / chunk_pairs.
     """
     if chunk_pairs <= 0 or num_pairs < 0:
         raise ValueError(f"a first chunk needs pairs (got {chunk_pairs} of {num_pairs})")
-    rate = chunk_pairs * max(1, concurrency) / max(chunk_s, 1e-6)
-    return Estimate(num_pairs, rate, earlier_s + num_pairs / rate, earlier_s)
+    ratio = num_pairs / chunk_pairs if work_ratio is None else work_ratio
+    seconds = max(chunk_s, 1e-6) * ratio / max(1, concurrency)
+    return Estimate(num_pairs, num_pairs / seconds if seconds > 0 else 0.0, earlier_s + seconds, earlier_s)
+
+
+def chunk_work(chunks: list[list[tuple[str, str]]], image_cost: float) -> list[float]:
+    """The work of each chunk in pairs' matching time: its pairs, plus `image_cost` pairs for each
+    image it touches where the matcher pays once per image and call (COLMAP's SIFT matcher builds
+    each image's search index anew in every call)."""
+    return [len(chunk) + image_cost * len({name for pair in chunk for name in pair}) for chunk in chunks]
 
 
 def format_duration(seconds: float) -> str:
