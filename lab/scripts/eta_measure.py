@@ -36,10 +36,11 @@ def run_one(scene: str, method: str, work: Path) -> dict:
     out = work / f"{scene}-{method}"
     cmd = [sys.executable, "-m", "sara", "run", str(DATA / scene / "images"), str(out), "--gt",
            str(DATA / scene / "gt"), *METHODS[method]]
-    if method == "exhaustive":
+    features = work / f"{scene}-features"  # a folder whose extraction to reuse, if there is one
+    if method == "exhaustive" and not features.is_dir():
         cmd.append("--overwrite")
     else:
-        share_features(work / f"{scene}-exhaustive", out)
+        share_features(features if method == "exhaustive" else work / f"{scene}-exhaustive", out)
     before, tic = load(), time.perf_counter()
     proc = subprocess.run(cmd, capture_output=True, text=True)
     wall = time.perf_counter() - tic

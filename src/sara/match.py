@@ -234,10 +234,10 @@ def _match_all(conf: MatchConfig, matcher: Matcher, features_backend: str, featu
                 colmap.verify_pairs(work, chunk_path, min_num_inliers=conf.min_num_inliers)
             bar.update(len(chunk))
             if estimate is None:
-                work = eta.chunk_work(chunks, getattr(matcher, "image_cost_in_pairs", 0.0))
+                costs = eta.chunk_work(chunks, getattr(matcher, "image_cost_in_pairs", 0.0))
                 estimate = eta.from_first_chunk(len(todo), len(chunk), time.perf_counter() - tic,
                                                 concurrency=concurrency, earlier_s=earlier_s,
-                                                work_ratio=sum(work) / work[0])
+                                                work_ratio=sum(costs) / costs[0])
                 if len(chunks) > 1:
                     logger.info(estimate.line(STAGE))
             records.mark_done(out_dir, PROGRESS_RECORD, key, {"time_s": earlier_s + time.perf_counter() - tic,
