@@ -70,6 +70,9 @@ def main() -> None:
             print(f"{run.name}: {len(pairs)} pairs in {len(chunks)} chunks, the bar says {progress}: skipped")
             continue
         times = np.diff([0.0] + [ends[int(b)] for b in bounds])
+        if times[0] < 2:
+            print(f"{run.name}: a first chunk of {times[0]:.0f} s is too short for the bar's one-second steps")
+            continue
         images = [len({n for p in c for n in p}) for c in chunks]
         print(f"\n{run.name}: {len(pairs)} pairs; chunks (pairs, images, s): "
               + ", ".join(f"({len(c)}, {i}, {t:.0f})" for c, i, t in zip(chunks, images, times)))
