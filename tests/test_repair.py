@@ -58,7 +58,8 @@ def test_a_repair_that_leaves_most_of_its_views_out_is_not_repeated(tmp_path: Pa
     pairs = [("a", "b"), ("b", "c"), ("c", "d"), ("d", "e")]
     header = "name0,name1,num_matches,num_inliers,overlap,parallax_deg,weight,accepted,reason,role\n"
     (tmp_path / "scores.csv").write_text(header + "".join(f"{a},{b},50,40,0.1,5,0.1,true,,tree\n" for a, b in pairs))
-    ctx = SimpleNamespace(names=["a", "b", "c", "d", "e"], out_dir=tmp_path, conf=PipelineConfig())
+    ctx = SimpleNamespace(names=["a", "b", "c", "d", "e"], out_dir=tmp_path, conf=PipelineConfig(),
+                          max_round_pairs=None)
     model = tmp_path / "sparse" / "0"
 
     first = sara_source.after_mapping(ctx, pairs, model).pairs

@@ -57,7 +57,7 @@ def test_the_source_adds_support_pairs_once_per_selection(tmp_path: Path, monkey
     monkeypatch.setattr(sara_source.colmap, "verified_inliers", lambda db, min_num_inliers: dict(inliers))
     monkeypatch.setattr(sara_source.colmap, "match_counts", lambda db: dict(inliers))
     names = ["a", "b", "c", "d", "e", "f", "g", "h"]  # the cap of all rounds leaves room for 5 more pairs
-    ctx = SimpleNamespace(names=names, out_dir=tmp_path, conf=PipelineConfig())
+    ctx = SimpleNamespace(names=names, out_dir=tmp_path, conf=PipelineConfig(), max_round_pairs=None)
     pairs = [("a", "b"), ("b", "c")]
     extra = sara_source.before_mapping(ctx, pairs, tmp_path / "database.db")
     assert extra == [("a", "c")]
@@ -66,5 +66,5 @@ def test_the_source_adds_support_pairs_once_per_selection(tmp_path: Path, monkey
     inliers[("a", "c")] = 0
     assert sara_source.before_mapping(ctx, pairs + extra, tmp_path / "database.db") == []
     conf_off = make_config(overrides={"rounds.support_min_view_inliers": 0})
-    off = SimpleNamespace(names=ctx.names, out_dir=tmp_path, conf=conf_off)
+    off = SimpleNamespace(names=ctx.names, out_dir=tmp_path, conf=conf_off, max_round_pairs=None)
     assert sara_source.before_mapping(off, pairs, tmp_path / "database.db") == []

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from . import colmap
+from . import colmap, eta
 from .config import MatchConfig
 from .execute import Executor, SerialExecutor, for_device, single_threaded_torch_in_worker
 from .io import DamagedOutputError, NoResultError, ensure_free_space, fingerprint, read_json, records, write_json_atomic
@@ -78,10 +78,10 @@ def run(conf: MatchConfig, pairs_path: Path, db_path: Path, out_dir: Path, *, fe
                           beside=beside and before["num_matched_pairs"] > 0)
     _remove_other_pairs(work, pairs, names)  # keep the matches that are still wanted
     records.mark_started(out_dir, STAGE, key)
-    elapsed, num_done = _match_all(conf, matcher, features_backend, features_path, pairs, names, work, out_dir, key,
-                                   conf_key, executor, progress)
+    elapsed, num_done, estimate = _match_all(conf, matcher, features_backend, features_path, pairs, names, work,
+                                             out_dir, key, conf_key, executor, progress)
     info = {"num_pairs": len(pairs), "num_matched_now": num_done, "time_s": elapsed, "matcher": matcher.name,
-            **verification_stats(work, conf.min_num_inliers)}
+            **_estimate_info(estimate, num_done, elapsed), **verification_stats(work, conf.min_num_inliers)}
     if info["num_verified_pairs"] == 0:
         if work != Path(db_path):
             colmap.remove_database(work)
@@ -197,8 +197,9 @@ CHUNKS_PER_WORKER = 4
 
 def _match_all(conf: MatchConfig, matcher: Matcher, features_backend: str, features_path: Path, pairs: list[Pair],
                names: dict[str, int], work: Path, out_dir: Path, key: str, conf_key: str, executor: Executor | None,
-               progress: bool) -> tuple[float, int]:
-    """Match and verify the pairs not yet in `work`, chunk by chunk; returns (seconds, pairs done)."""
+               progress: bool) -> tuple[float, int, eta.Estimate | None]:
+    """Match and verify the pairs not yet in `work`, chunk by chunk; returns (seconds, pairs done,
+    the estimate made from the first chunk, None when nothing was matched)."""
     todo = _unmatched(work, pairs, names)
     # time spent by earlier, interrupted runs on these very pairs counts too
     progress_record = records.read_record(out_dir, PROGRESS_RECORD) or {}
@@ -213,7 +214,13 @@ def _match_all(conf: MatchConfig, matcher: Matcher, features_backend: str, featu
         # a few chunks per worker, so that no worker idles at the end while another finishes a
         # chunk of harder pairs (LightGlue's time per pair varies several-fold with the overlap)
         size = max(1, min(size, math.ceil(len(todo) / (workers * CHUNKS_PER_WORKER))))
-    chunks = [todo[k:k + size] for k in range(0, len(todo), size)]
+    chunks = chunked(todo, size)
+    if len(chunks) > 1:
+        logger.info("match: %s pairs to match%s; an estimate of the time follows the first chunk", f"{len(todo):,}",
+                    f" ({len(pairs) - len(todo):,} matched before)" if len(todo) < len(pairs) else "")
+    # chunks in flight at once: when the first comes back, about that many are done
+    concurrency = 1 if hasattr(matcher, "match_in_database") else min(workers, len(chunks))
+    estimate = None
     with tqdm(total=len(pairs), initial=len(pairs) - len(todo), desc=f"match pairs ({matcher.name})", unit="pair",
               disable=not progress) as bar, space_free_names(work, out_dir) as alias:
         if hasattr(matcher, "match_in_database"):
@@ -232,10 +239,38 @@ def _match_all(conf: MatchConfig, matcher: Matcher, features_backend: str, featu
                 colmap.write_matches(work, dict(zip(renamed, matches)))
                 colmap.verify_pairs(work, chunk_path, min_num_inliers=conf.min_num_inliers)
             bar.update(len(chunk))
+            if estimate is None:
+                costs = eta.chunk_work(chunks, getattr(matcher, "image_cost_in_pairs", 0.0))
+                estimate = eta.from_first_chunk(len(todo), len(chunk), time.perf_counter() - tic,
+                                                concurrency=concurrency, earlier_s=earlier_s,
+                                                work_ratio=sum(costs) / costs[0])
+                if len(chunks) > 1:
+                    logger.info(estimate.line(STAGE))
             records.mark_done(out_dir, PROGRESS_RECORD, key, {"time_s": earlier_s + time.perf_counter() - tic,
                                                               "beside": beside, "conf_key": conf_key})
     chunk_path.unlink(missing_ok=True)
-    return earlier_s + time.perf_counter() - tic, len(todo)
+    return earlier_s + time.perf_counter() - tic, len(todo), estimate
+
+
+def _estimate_info(estimate: eta.Estimate | None, num_done: int, elapsed_s: float) -> dict:
+    """The record's figures of the estimate against the time taken (with one chunk, the estimate is
+    the time taken: it was made as the matching ended)."""
+    if estimate is None:
+        return {}
+    return {"estimate_s": estimate.seconds, "estimate_rate_pairs_per_s": estimate.rate_pairs_per_s,
+            "rate_pairs_per_s": num_done / max(elapsed_s - estimate.earlier_s, 1e-6)}
+
+
+#: the first chunk, whose rate gives the estimate of the time: about this share of the pairs, at
+#: least MIN_FIRST_CHUNK pairs, at most a chunk, so that the estimate comes within seconds
+FIRST_CHUNK_SHARE = 0.05
+MIN_FIRST_CHUNK = 8
+
+
+def chunked(todo: list[Pair], size: int) -> list[list[Pair]]:
+    """`todo` in chunks of `size` pairs after a smaller first chunk (`FIRST_CHUNK_SHARE`)."""
+    first = min(size, max(MIN_FIRST_CHUNK, math.ceil(FIRST_CHUNK_SHARE * len(todo))))
+    return [todo[:first]] + [todo[k:k + size] for k in range(first, len(todo), size)] if todo else []
 
 
 @dataclass(frozen=True)

@@ -7,6 +7,8 @@ import logging
 import signal
 import sys
 
+from tqdm import tqdm
+
 from .errors import RECEIVED_SIGNALS, catch_termination, describe_error, exit_now, interrupt_behind, interrupted_line
 from .parser import build_parser
 
@@ -16,12 +18,23 @@ logger = logging.getLogger("sara")
 def setup_logging(verbose: bool, quiet: bool) -> None:
     """sara's log on stderr: INFO, DEBUG with -v, warnings only with -q (only the CLI does this)."""
     level = logging.DEBUG if verbose else logging.WARNING if quiet else logging.INFO
-    handler = logging.StreamHandler(sys.stderr)
+    handler = _BesideProgressBars(sys.stderr)
     handler.setFormatter(logging.Formatter("[%(name)s] %(levelname)s: %(message)s"))
     root = logging.getLogger("sara")
     root.handlers[:] = [handler]
     root.setLevel(level)
     root.propagate = False
+
+
+class _BesideProgressBars(logging.StreamHandler):
+    """Log lines on their own lines while a progress bar runs (the matching's estimate comes
+    mid-bar): tqdm clears the bar, writes the line, and draws the bar again."""
+
+    def emit(self, record: logging.LogRecord) -> None:
+        try:
+            tqdm.write(self.format(record), file=self.stream)
+        except Exception:  # logging's contract: a failing handler reports, never raises
+            self.handleError(record)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -28,7 +28,9 @@ class Matcher(Protocol):
     A matcher may also define `match_batch(pairs: list[tuple[Features, Features]])` returning a
     list of such results (used in chunks when present). A matcher that runs on an accelerator says
     so with a `device` attribute (a torch.device or "cuda", ...): the stage then calls it in the
-    driver process instead of loading it in every worker (`sara.execute.for_device`).
+    driver process instead of loading it in every worker (`sara.execute.for_device`). A matcher
+    that pays a cost per image and call says how much with `image_cost_in_pairs` (in pairs'
+    matching time), which the stage's time estimate counts (`sara.eta.chunk_work`).
     """
 
     name: str

@@ -34,6 +34,9 @@ class PairContext:
     #: the extract stage's focal-length estimate for a shared camera (`estimated_px`, `sound`,
     #: `prior_px`, ...; its record's `focal`), None when it made none
     focal_estimate: dict[str, Any] | None = None
+    #: most pairs the round after mapping that is being asked for may add, from the rounds' time
+    #: budget (set by the pipeline for that call; None: no limit beyond the source's own)
+    max_round_pairs: int | None = None
 
 
 @dataclass

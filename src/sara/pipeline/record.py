@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import Any
 
 from .. import __version__, colmap, mapping, match
+from ..eta import format_duration
 from ..io import records, write_json_atomic
 from ..tables import markdown_table
 from . import rounds
@@ -66,11 +67,26 @@ def collect_stages(report: RunReport, selection_key: str) -> None:
     if "first_match_time_s" in ledger:
         matched["time_s"] = (ledger["first_match_time_s"] + before.get("match_time_s", 0.0)
                              + ledger.get("match_time_s", 0.0))
+        # the estimates of the same matchings, made from each one's first chunk
+        matched["estimate_s"] = (ledger.get("first_match_estimate_s", ledger["first_match_time_s"])
+                                 + before.get("match_estimate_s", 0.0) + ledger.get("match_estimate_s", 0.0))
+        # the rates of the first matching, not of the last round's few pairs
+        matched["rate_pairs_per_s"] = ledger.get("first_match_rate_pairs_per_s", matched.get("rate_pairs_per_s"))
+        matched.pop("estimate_rate_pairs_per_s", None)
     if "first_map_time_s" in ledger:
         mapped["time_s"] = ledger["first_map_time_s"] + ledger.get("map_time_s", 0.0)
     report.stages.update(pairs=pairs, match=matched, map=mapped)
-    if ledger.get("rounds") or ledger.get("extension"):
-        report.stages["rounds"] = ledger
+    if ledger.get("rounds") or ledger.get("extension") or before:
+        report.stages["rounds"] = {**ledger, **rounds_share(ledger, pairs.get("time_s", 0.0))}
+
+
+def rounds_share(ledger: dict[str, Any], pairs_time_s: float) -> dict[str, Any]:
+    """The rounds' time (matching before the first mapping, and every round after it with the last
+    step on the final model) and its share of the time after extraction (pairs, match, map)."""
+    rounds_s = ledger.get("before_mapping", {}).get("match_time_s", 0.0) + ledger.get("time_s", 0.0)
+    first_s = pairs_time_s + ledger.get("first_match_time_s", 0.0) + ledger.get("first_map_time_s", 0.0)
+    return {"total_time_s": rounds_s, "first_round_time_s": first_s,
+            "share_after_extraction": rounds_s / (first_s + rounds_s) if first_s + rounds_s > 0 else 0.0}
 
 
 def _tree_note(pairs_info: dict[str, Any]) -> str:
@@ -112,6 +128,9 @@ def render_report(report: RunReport) -> str:
                       f"{update['num_changed']} changed since the previous run; {update['num_extracted']} extracted, "
                       f"{update.get('num_pairs_scored', 0)} pairs scored, {update.get('num_pairs_matched', 0)} "
                       "pairs matched"]
+    notes = time_notes(s)
+    if notes:
+        lines += [""] + [f"- {note}" for note in notes]
     if report.skipped_images:
         lines += ["", "Skipped images:", ""] + [f"- `{n}`: {r}" for n, r in report.skipped_images.items()]
     if report.metrics:
@@ -119,3 +138,21 @@ def render_report(report: RunReport) -> str:
 
         lines += ["", "## Accuracy against ground truth", "", "```", format_table(report.metrics), "```"]
     return "\n".join(lines) + "\n"
+
+
+def time_notes(stages: dict[str, Any]) -> list[str]:
+    """Sentences on the time: the matching's estimate against what it took, the rounds' share."""
+    notes = []
+    ma, ro = stages.get("match", {}), stages.get("rounds", {})
+    if ma.get("estimate_s") is not None and ma.get("time_s"):
+        error = 100 * (ma["estimate_s"] - ma["time_s"]) / ma["time_s"]
+        what = "matching (every round's, each estimated from its first chunk)" if ro else "matching"
+        notes.append(f"{what}: estimated {format_duration(ma['estimate_s'])} after the first chunk, took "
+                     f"{format_duration(ma['time_s'])} ({error:+.0f}%)")
+    if ro.get("total_time_s") is not None:
+        budget = ro.get("time_budget_s")
+        notes.append(f"rounds after the first selection: {format_duration(ro['total_time_s'])}, "
+                     f"{100 * ro.get('share_after_extraction', 0.0):.0f}% of the time after extraction"
+                     + (f" (time budget of the rounds after mapping: {format_duration(budget)})" if budget else "")
+                     + (f"; the rounds stopped: {ro['stopped']}" if ro.get("stopped") else ""))
+    return notes

@@ -15,6 +15,7 @@ model refined or extended here becomes the map stage's output through `mapping.a
 from __future__ import annotations
 
 import logging
+import math
 import os
 import shutil
 import time
@@ -22,10 +23,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from .. import colmap, extract, mapping, match
+from .. import colmap, eta, extract, mapping, match
 from ..config import PipelineConfig
 from ..io import NoResultError, file_digest, fingerprint, records
-from ..io.pairs import read_pairs, write_pairs
+from ..io.pairs import Pair, read_pairs, write_pairs
 from ..pairs import PairContext, Round, Rounds
 
 logger = logging.getLogger(__name__)
@@ -124,6 +125,7 @@ class Staged:
 
     added: Round
     match_time_s: float
+    match_estimate_s: float = 0.0
 
 
 def before_mapping(run: RoundsRun, work: Path) -> tuple[Path, Staged | None]:
@@ -131,8 +133,11 @@ def before_mapping(run: RoundsRun, work: Path) -> tuple[Path, Staged | None]:
 
     Returns the database to map and the staged round (None when nothing was added)."""
     info = ledger(run.out_dir, run.selection_key)
-    if "first_match_time_s" not in info:  # the match stage's time of the first pairs, before any round
-        info["first_match_time_s"] = records.done_info(run.out_dir, match.STAGE).get("time_s", 0.0)
+    if "first_match_time_s" not in info:  # the match stage's figures of the first pairs, before any round
+        first = records.done_info(run.out_dir, match.STAGE)
+        info.update(first_match_time_s=first.get("time_s", 0.0),
+                    first_match_estimate_s=first.get("estimate_s", first.get("time_s", 0.0)),
+                    first_match_rate_pairs_per_s=first.get("rate_pairs_per_s", 0.0))
         _save(run, info)
     pairs = read_pairs(run.out_dir / PAIRS_NAME, known_names=run.ctx.names)
     added = run.rounds.before_mapping(run.ctx, pairs, work)
@@ -143,8 +148,8 @@ def before_mapping(run: RoundsRun, work: Path) -> tuple[Path, Staged | None]:
     work = run.match(run.staged)
     record = records.read_record(run.out_dir, match.STAGE) or {}
     matched_now = record.get("key") != first.get("key") and first.get("done") is True
-    elapsed = record.get("info", {}).get("time_s", 0.0) if matched_now else 0.0
-    return work, Staged(added, elapsed)
+    done = record.get("info", {}) if matched_now else {}
+    return work, Staged(added, done.get("time_s", 0.0), done.get("estimate_s", done.get("time_s", 0.0)))
 
 
 def commit_staged(run: RoundsRun, staged: Staged) -> None:
@@ -152,7 +157,8 @@ def commit_staged(run: RoundsRun, staged: Staged) -> None:
     before = ledger(run.out_dir, run.selection_key).get("before_mapping", {})
     _commit_pairs(run, staged.added, {"before_mapping": {
         "num_pairs": before.get("num_pairs", 0) + len(staged.added.pairs),
-        "match_time_s": before.get("match_time_s", 0.0) + staged.match_time_s}})
+        "match_time_s": before.get("match_time_s", 0.0) + staged.match_time_s,
+        "match_estimate_s": before.get("match_estimate_s", 0.0) + staged.match_estimate_s}})
 
 
 # ---------------------------------------------------------------------------------------------
@@ -163,48 +169,122 @@ def commit_staged(run: RoundsRun, staged: Staged) -> None:
 def after_mapping(run: RoundsRun) -> dict[str, Any] | None:
     """Let the source look at the model and ask for more pairs; match them, then refine or map again.
 
-    Up to `rounds.repair_rounds` rounds; a round whose mapping fails keeps the previous round's
-    pairs, matches and model. Then the source's last step on the final model. Returns the ledger
-    (None when no round and no last step ran)."""
+    Up to `rounds.repair_rounds` rounds, within their time budget (`time_budget`): each round's
+    pairs are cut to what its matching may take at the first round's rate, and no round starts
+    once the budget is spent. A round that registered no new image and left as many models is not
+    repeated (its role asked for again ends the rounds). A round whose mapping fails keeps the
+    previous round's pairs, matches and model. Then the source's last step on the final model.
+    Returns the ledger (None when no round and no last step ran)."""
     if run.conf.rounds.repair_rounds <= 0:
         return None
     out_dir = run.out_dir
     info = ledger(out_dir, run.selection_key)
     if "first_map_time_s" not in info:  # the map stage's time of the first model, before any round
         info["first_map_time_s"] = records.done_info(out_dir, mapping.STAGE).get("time_s", 0.0)
-        info.update(rounds=0, pairs_added=0, time_s=0.0, match_time_s=0.0, map_time_s=0.0, refined_rounds=0)
+        info.update(rounds=0, pairs_added=0, time_s=0.0, match_time_s=0.0, match_estimate_s=0.0, map_time_s=0.0,
+                    refined_rounds=0, history=[])
         _save(run, info)
-    while info["rounds"] < run.conf.rounds.repair_rounds:
-        pairs = read_pairs(out_dir / PAIRS_NAME, known_names=run.ctx.names)
-        added = run.rounds.after_mapping(run.ctx, pairs, out_dir / "sparse" / "0")
-        if added is None or not added.pairs:
-            break
-        tic = time.perf_counter()
-        write_pairs(run.staged, pairs + added.pairs)
-        try:
-            work = run.match(run.staged)
-            match_s = records.done_info(out_dir, match.STAGE).get("time_s", 0.0)
-            done = {"rounds": info["rounds"] + 1, "pairs_added": info["pairs_added"] + len(added.pairs),
-                    "match_time_s": info["match_time_s"] + match_s}
-            refined = _refine(run, added, work, done)
-            map_s = refined["time_s"] if refined is not None else _map_again(run, added, work, done)
-        except NoResultError as exc:
-            logger.warning("the %d pairs added after mapping gave no better model (%s): keeping the model as it "
-                           "was", len(added.pairs), exc)
-            colmap.remove_database(out_dir / ".sara" / match.NEXT_DB_NAME)
-            run.staged.unlink(missing_ok=True)
-            break
+    while info["rounds"] < run.conf.rounds.repair_rounds and _one_round(run, info):
         info = ledger(out_dir, run.selection_key)
-        info.update(time_s=info["time_s"] + time.perf_counter() - tic, map_time_s=info["map_time_s"] + map_s,
-                    refined_rounds=info["refined_rounds"] + (refined is not None))
-        _save(run, info)
+    info = ledger(out_dir, run.selection_key)
     finished = _finish(run, refined=info.get("refined_rounds", 0) > 0)
     if finished is not None:
-        info = ledger(out_dir, run.selection_key)
         info.update(extension=finished, time_s=info["time_s"] + finished["time_s"],
                     map_time_s=info["map_time_s"] + finished["time_s"])
         _save(run, info)
     return info if info.get("rounds") or info.get("extension") else None
+
+
+def time_budget(conf: PipelineConfig, info: dict[str, Any]) -> eta.TimeBudget:
+    """The rounds' time budget from the ledger: `rounds.max_time_fraction` of the first round's
+    match + map time, less what the rounds after mapping took so far."""
+    return eta.TimeBudget(conf.rounds.max_time_fraction, info.get("first_match_time_s", 0.0),
+                          info.get("first_map_time_s", 0.0), spent_s=info.get("time_s", 0.0),
+                          rate_pairs_per_s=info.get("first_match_rate_pairs_per_s", 0.0))
+
+
+def _one_round(run: RoundsRun, info: dict[str, Any]) -> bool:
+    """One round after mapping; False when there is none to run (the ledger says why in `stopped`)."""
+    out_dir = run.out_dir
+    budget = time_budget(run.conf, info)
+    limit = budget.pairs_that_fit()
+    total_s = None if math.isinf(budget.total_s) else budget.total_s
+    if limit == 0:
+        logger.info("rounds: %s of their time budget of %s taken (rounds.max_time_fraction of the first round's "
+                    "match and map time), too little left to match a pair: no more rounds",
+                    eta.format_duration(budget.spent_s), eta.format_duration(budget.total_s))
+        return _stop(run, "time budget spent", total_s)
+    tic = time.perf_counter()
+    pairs = read_pairs(out_dir / PAIRS_NAME, known_names=run.ctx.names)
+    run.ctx.max_round_pairs = limit
+    try:
+        added = run.rounds.after_mapping(run.ctx, pairs, out_dir / "sparse" / "0")
+    finally:
+        run.ctx.max_round_pairs = None
+    if added is None or not added.pairs:
+        return _stop(run, "nothing more to add", total_s)
+    if added.role in info.get("unproductive_roles", []):
+        logger.info("rounds: the last %s round registered no new image and left as many models: not repeating it",
+                    added.role)
+        return _stop(run, "a round without gain asked for again", total_s)
+    added = _within(added, pairs, limit)
+    if not added.pairs:
+        return _stop(run, "nothing more to add", total_s)
+    state = _model_state(out_dir)
+    write_pairs(run.staged, pairs + added.pairs)
+    try:
+        work = run.match(run.staged)
+        matched = records.done_info(out_dir, match.STAGE)
+        done = {"rounds": info["rounds"] + 1, "pairs_added": info["pairs_added"] + len(added.pairs),
+                "match_time_s": info["match_time_s"] + matched.get("time_s", 0.0),
+                "match_estimate_s": info.get("match_estimate_s", 0.0)
+                + matched.get("estimate_s", matched.get("time_s", 0.0))}
+        refined = _refine(run, added, work, done)
+        map_s = refined["time_s"] if refined is not None else _map_again(run, added, work, done)
+    except NoResultError as exc:
+        logger.warning("the %d pairs added after mapping gave no better model (%s): keeping the model as it "
+                       "was", len(added.pairs), exc)
+        colmap.remove_database(out_dir / ".sara" / match.NEXT_DB_NAME)
+        run.staged.unlink(missing_ok=True)
+        return _stop(run, "a round gave no better model", total_s)
+    info = ledger(out_dir, run.selection_key)
+    after = _model_state(out_dir)
+    gained = after[0] > state[0] or after[1] < state[1]
+    round_s = time.perf_counter() - tic
+    info.setdefault("history", []).append({
+        "role": added.role, "num_pairs": len(added.pairs), "pair_limit": limit,
+        "match_time_s": matched.get("time_s", 0.0), "map_time_s": map_s, "time_s": round_s,
+        "registered": [state[0], after[0]], "num_models": [state[1], after[1]], "gain": gained})
+    if not gained:
+        info["unproductive_roles"] = sorted(set(info.get("unproductive_roles", [])) | {added.role})
+    info.update(time_s=info["time_s"] + round_s, map_time_s=info["map_time_s"] + map_s,
+                refined_rounds=info["refined_rounds"] + (refined is not None), time_budget_s=total_s)
+    _save(run, info)
+    return True
+
+
+def _stop(run: RoundsRun, why: str, time_budget_s: float | None) -> bool:
+    """No more rounds, and why (in the ledger)."""
+    info = ledger(run.out_dir, run.selection_key)
+    info.update(stopped=why, time_budget_s=time_budget_s)
+    _save(run, info)
+    return False
+
+
+def _within(added: Round, matched: list[Pair], limit: int | None) -> Round:
+    """The round's pairs that are not matched yet, the first `limit` of them (None: all)."""
+    done = {tuple(sorted(p)) for p in matched}
+    fresh = [p for p in added.pairs if tuple(sorted(p)) not in done]
+    if limit is not None and len(fresh) > limit:
+        logger.info("rounds: %d of the %s round's %d pairs fit in the time left", limit, added.role, len(fresh))
+        fresh = fresh[:limit]
+    return Round(fresh, added.role)
+
+
+def _model_state(out_dir: Path) -> tuple[int, int]:
+    """(images registered in the main model, number of models), as the map stage recorded them."""
+    mapped = records.done_info(out_dir, mapping.STAGE)
+    return int(mapped.get("num_registered", 0)), int(mapped.get("num_components", 0))
 
 
 def _copy_other_models(sparse: Path, new: Path) -> None:

@@ -13,6 +13,7 @@ import numpy as np
 
 from ..export import FORMATS
 from ..io.pairs import Pair
+from ..pipeline.record import time_notes
 from . import SELECTED_ROLES, RunData, Scores
 from .markup import esc, fmt, section, table
 from .svg import histogram_svg, node_positions, role_order, role_swatch, top_down_svg, view_graph_svg
@@ -23,7 +24,7 @@ def summary(data: RunData) -> str:
     """One card per headline number: images, registered, pairs, points, models, time (and AUC@5)."""
     n = len(data.names)
     registered = len(data.model.names) if data.model is not None else 0
-    total_s = sum(float(s.get("time_s", 0.0)) for s in data.stages.values() if isinstance(s, dict))
+    total_s = sum(float(s.get("time_s", 0.0)) for k, s in data.stages.items() if isinstance(s, dict) and k != "rounds")
     cards = [("images", str(n)),
              ("registered", f"{registered} / {n}" if data.model is not None else "no model"),
              ("pairs matched", f"{len(data.pairs)}"),
@@ -162,12 +163,15 @@ def scores(data: RunData) -> str:
 
 
 def timing(data: RunData) -> str:
-    """A bar per stage (and per step of the pairs stage) from run.json's times."""
+    """A bar per stage (and per step of the pairs stage) from run.json's times; the rounds, whose
+    time the match and map stages include, as a bar of their own that the total does not add, and
+    the matching's estimate against its time."""
     rows = [(name, float(info["time_s"])) for name, info in data.stages.items()
-            if isinstance(info, dict) and isinstance(info.get("time_s"), int | float)]
+            if name != "rounds" and isinstance(info, dict) and isinstance(info.get("time_s"), int | float)]
     if not rows:
         return ""
     sub = data.stages.get("pairs", {}).get("timings_s", {})
+    rounds_s = data.stages.get("rounds", {}).get("total_time_s")
     total = max(sum(t for _, t in rows), 1e-9)
     top = max(t for _, t in rows) or 1.0
     html_rows = []
@@ -175,8 +179,11 @@ def timing(data: RunData) -> str:
         html_rows.append(_time_bar(name, t, top, total))
         if name == "pairs":
             html_rows += [_time_bar(f"\u2003{k}", float(v), top, total, sub=True) for k, v in sub.items()]
+    if isinstance(rounds_s, int | float):
+        html_rows.append(_time_bar("rounds (in match and map)", float(rounds_s), top, total, sub=True))
+    notes = "".join(f" {esc(note[0].upper() + note[1:])}." for note in time_notes(data.stages))
     return section("Time per stage", f"<div class=\"bars\">{''.join(html_rows)}</div>",
-                   f"Total {total:.1f} s (from run.json; stages skipped on resume count their first run).")
+                   f"Total {total:.1f} s (from run.json; stages skipped on resume count their first run).{notes}")
 
 
 def _time_bar(name: str, seconds: float, top: float, total: float, *, sub: bool = False) -> str:

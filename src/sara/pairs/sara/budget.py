@@ -1,7 +1,9 @@
 """The one ledger of SARA's pairs: the cap of all rounds together and each round's share of it.
 
 Every round (the first selection, support before mapping, repair and pose-guided after it) asks
-this object how many pairs it may add; no other module splits `budget.max_pairs_per_image`.
+this object how many pairs it may add; no other module splits `budget.max_pairs_per_image`. The
+rounds after mapping are also held to the pairs their time budget leaves (`time_limit`, which the
+pipeline works out from `rounds.max_time_fraction` and the first round's matching rate).
 """
 
 from __future__ import annotations
@@ -21,6 +23,9 @@ class PairBudget:
     num_images: int
     budget: BudgetConfig
     rounds: RoundsConfig
+    #: most pairs of the round after mapping being chosen, from the rounds' time budget (the
+    #: pipeline's `PairContext.max_round_pairs`; None: no limit)
+    time_limit: int | None = None
 
     @property
     def cap(self) -> int:
@@ -51,7 +56,7 @@ class PairBudget:
     def repair(self, num_matched: int, num_left_out: int) -> int:
         """Pairs a repair round may add: the room under the usual cap, and at least one per view
         left out of the model (a view without a pair into the model cannot be registered)."""
-        return max(self.budget.pair_cap(self.num_images) - num_matched, num_left_out)
+        return self._in_time(max(self.budget.pair_cap(self.num_images) - num_matched, num_left_out))
 
     def pose_guided(self, num_matched: int, num_registered: int) -> int:
         """Pairs the pose-guided round may add: its own share per registered view
@@ -59,4 +64,9 @@ class PairBudget:
         within the cap."""
         ratio = self.budget.densify_pairs_per_image if self.budget.densify else self.rounds.pose_guided_pairs_per_image
         own = int(np.ceil(ratio * num_registered - 1e-9))
-        return max(0, min(own, self.cap - num_matched))
+        return self._in_time(max(0, min(own, self.cap - num_matched)))
+
+    def _in_time(self, pairs: int) -> int:
+        """`pairs`, or fewer where the rounds' time budget leaves less (it wins over the pair caps:
+        a repair that does not fit in time is not worth its mapping)."""
+        return pairs if self.time_limit is None else max(0, min(pairs, self.time_limit))

@@ -91,7 +91,8 @@ def select_extra(ctx: PairContext, pairs: list[Pair], model_dir: Path) -> tuple[
     tic = time.perf_counter()
     geom = colmap_refine.read_geometry(model_dir)
     rounds, densify = ctx.conf.rounds, ctx.conf.budget.densify
-    limit = PairBudget(len(ctx.names), ctx.conf.budget, rounds).pose_guided(len(pairs), len(geom.names))
+    limit = PairBudget(len(ctx.names), ctx.conf.budget, rounds, ctx.max_round_pairs).pose_guided(
+        len(pairs), len(geom.names))
     candidates = candidate_pairs(geom.names, pairs, geom.centers, geom.rotations[:, 2, :])
     if limit <= 0 or len(candidates) == 0:
         return [], {"budget": limit, "num_candidates": len(candidates)}

@@ -37,7 +37,7 @@ SUPPORT_STAGE = "support"
 
 
 def budget_of(ctx: PairContext) -> PairBudget:
-    return PairBudget(len(ctx.names), ctx.conf.budget, ctx.conf.rounds)
+    return PairBudget(len(ctx.names), ctx.conf.budget, ctx.conf.rounds, ctx.max_round_pairs)
 
 
 class SaraRounds(NoRounds):
