@@ -31,6 +31,10 @@ class ScoreConfig:
     min_overlap: float = option(0.005, reals(0, 1), "tau_O: a candidate with less overlap is rejected.")
     min_parallax_deg: float = option(0.5, reals(0, 180, high_open=True), """tau_P: a candidate with less
         parallax is rejected (degrees).""")
+    max_descriptor_ratio: float = option(1.0, reals(0, 1, low_open=True), """Lowe's ratio test on the
+        scorer's mutual matches: the b best are taken only among matches whose descriptor distance is at most
+        this fraction of the distance to the second-best candidate in either image (1: no test). See
+        lab/notes/AMBIGUITY.md for what 0.8 changes.""")
     min_inliers: int = option(15, ints(0), """Fewest RANSAC inliers of an accepted candidate: RANSAC on
         unrelated images finds 8-12 of 50 by chance.""")
     tree_overlap: str = option("auto", choice("auto", "all", "best"), """The overlap in the spanning tree's
