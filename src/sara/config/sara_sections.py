@@ -103,6 +103,16 @@ class GraphConfig:
         strictly below this quantile (0-1) of all views' medians is weak too; 0 disables this criterion.""")
     weak_per_view: int = option(1, ints(1), "Most pairs added per weak view (pairs).")
 
+    reject_inconsistent: bool = option(True, flag(), """Before the spanning tree, reject accepted candidates whose
+        pre-match rotation does not close around triangles of other candidates (symmetric or repeated
+        structures: `sara.selection.ambiguity`); their reason in scores.csv is "inconsistent". It never
+        disconnects the candidate graph.""")
+    max_cycle_error_deg: float = option(20.0, reals(0, 180, low_open=True), """A triangle of candidates fails
+        when its rotations compose to more than this angle (degrees). The pre-match rotations use the focal
+        length known before mapping, so true triangles err by several degrees.""")
+    cycle_min_failed: int = option(2, ints(1), """Fewest failing triangles that can blame a pair (a single
+        failing triangle does not say which of its three pairs is wrong).""")
+
     def __post_init__(self) -> None:
         validate(self)
         if not self.loop_short_frac <= self.loop_long_frac:
