@@ -8,20 +8,23 @@ rotations compose to the identity, so the angle of ``R_ik^T R_jk R_ij`` (the tri
 error*) measures how wrong its three rotations are together.
 
 A failing triangle (closure error above ``max_error_deg``) says that one of its three pairs is
-wrong, not which. Like 1DSfM and the cycle tests of loop-constraint disambiguation, the check lets
-the pairs vote: a pair is blamed when
+wrong, not which. It points at one when the other two are *vouched for*: each closes some other
+triangle. (Like the loop tests of 1DSfM and of loop-constraint disambiguation, the pairs check each
+other; no pair is trusted on its own.) A pair is rejected when
 
-- at least ``min_failed`` of its triangles fail (each failure is shared with two other pairs; two
-  failures that share only this pair point at it), and
+- at least ``min_failed`` of its failing triangles point at it, and
 - most of its triangles fail (more than half: a wrong pair closes a triangle only by chance, a true
   pair closes every triangle whose other two pairs are true).
 
-Pairs are rejected one at a time, the most blamed first (largest share of failing triangles, then
-most failures, then lowest weight), and the triangles of a rejected pair stop counting against the
-others: a true pair that only failed next to a wrong one is cleared. Pairs in no triangle are never
-tested, hence kept. The check never disconnects the graph by itself: where the rejections would
-split a connected part of the accepted graph (or leave a view with no pair), the best rejected pairs
-that join it again (by weight, a maximum spanning forest) are kept, and logged.
+Pairs are rejected one at a time, the most blamed first (then the largest share of failing
+triangles, then the lowest weight), and the triangles of a rejected pair stop counting: a pair that
+vouched for others only through it no longer does. Pairs in no triangle are never tested, hence
+kept; so are the pairs of a view whose every pair disagrees with the others (nothing says which).
+
+The check never disconnects the accepted graph, and so never leaves a view without a pair: a
+triangle that crosses a cut of the graph holds exactly two of the pairs across it, so when all of
+them but one are rejected, every triangle of the last one holds a rejected pair and has stopped
+counting; nothing can blame it. (`tests/test_ambiguity.py` checks this on random graphs.)
 
 The scorer's rotations come from the focal length known before mapping (EXIF or COLMAP's prior,
 often 1.3-2x off), so true pairs' rotations err by several degrees; the threshold is set above that
@@ -31,7 +34,6 @@ often 1.3-2x off), so true pairs' rotations err by several degrees; the threshol
 from __future__ import annotations
 
 import logging
-from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -39,7 +41,7 @@ from scipy.spatial.transform import Rotation
 
 from ..config import GraphConfig
 from ..io.scores import PairScores
-from .spanning import _check_graph, connected_components, maximum_spanning_forest
+from .spanning import _check_graph
 
 logger = logging.getLogger(__name__)
 
@@ -53,7 +55,6 @@ class CycleCheck:
 
     Attributes:
         rejected: (R,) int64 indices into ``edges`` of the rejected pairs, in the order rejected.
-        kept_to_connect: (K,) int64 pairs the rules blamed but kept so as not to split the graph.
         triangles: (T, 3) int64 edge indices ``(ij, jk, ik)`` of the triangles of tested pairs.
         closure_error_deg: (T,) float64 each triangle's closure error, degrees.
         failed: (E,) int64 failing triangles of each pair (all triangles, before any rejection).
@@ -61,7 +62,6 @@ class CycleCheck:
     """
 
     rejected: np.ndarray
-    kept_to_connect: np.ndarray
     triangles: np.ndarray
     closure_error_deg: np.ndarray
     failed: np.ndarray
@@ -70,7 +70,7 @@ class CycleCheck:
     def stats(self) -> dict[str, int]:
         """Counts for a log line or a record."""
         return {"triangles": len(self.triangles), "failed_triangles": int(self.failed.sum() // 3),
-                "rejected": len(self.rejected), "kept_to_connect": len(self.kept_to_connect)}
+                "rejected": len(self.rejected)}
 
 
 def triangles_of(num_images: int, edges: np.ndarray, tested: np.ndarray) -> np.ndarray:
@@ -114,9 +114,8 @@ def inconsistent_pairs(
         num_images: N.
         edges: (E, 2) int64 candidate pairs ``i < j``, unique.
         rotvec: (E, 3) float64 rotation vectors of ``cam_j_from_cam_i``; NaN where unknown (untested).
-        accepted: (E,) bool; only accepted pairs are tested, and only they keep the graph connected.
-        weight: (E,) float64 pair weight: ties of blame reject the weaker pair first, and the
-            strongest pairs are kept to reconnect.
+        accepted: (E,) bool; only accepted pairs are tested.
+        weight: (E,) float64 pair weight: of two pairs blamed alike, the weaker is rejected first.
         max_error_deg: a triangle fails above this closure error (degrees).
         min_failed: fewest failing triangles that can blame a pair.
     Returns:
@@ -132,60 +131,39 @@ def inconsistent_pairs(
     fails = errors > max_error_deg
     in_triangles = np.bincount(triangles.reshape(-1), minlength=len(edges)).astype(np.int64)
     failed = np.bincount(triangles[fails].reshape(-1), minlength=len(edges)).astype(np.int64)
-    blamed = _reject_greedily(triangles, fails, in_triangles.copy(), failed.copy(), weight, min_failed)
-    kept = _reconnect(num_images, edges, accepted, blamed, weight)
-    rejected = np.array([e for e in blamed if e not in set(kept.tolist())], dtype=np.int64)
-    return CycleCheck(rejected=rejected, kept_to_connect=kept, triangles=triangles, closure_error_deg=errors,
-                      failed=failed, in_triangles=in_triangles)
+    rejected = _reject_greedily(triangles, fails, weight, min_failed)
+    return CycleCheck(rejected=np.array(rejected, dtype=np.int64).reshape(-1), triangles=triangles,
+                      closure_error_deg=errors, failed=failed, in_triangles=in_triangles)
 
 
-def _reject_greedily(triangles: np.ndarray, fails: np.ndarray, total: np.ndarray, failed: np.ndarray,
-                     weight: np.ndarray, min_failed: int) -> list[int]:
+def _blame(triangles: np.ndarray, fails: np.ndarray, alive: np.ndarray, num_edges: int) -> tuple[np.ndarray, ...]:
+    """Per pair, over the `alive` triangles: (triangles, failing ones, failing ones that blame it).
+
+    A pair is vouched for when it closes at least one triangle; a failing triangle blames one of its
+    pairs when the other two are vouched for (then it is the one that does not fit)."""
+    vouched = np.bincount(triangles[alive & ~fails].reshape(-1), minlength=num_edges) > 0
+    failing = triangles[alive & fails]
+    v = vouched[failing]
+    blames = np.stack([v[:, 1] & v[:, 2], v[:, 0] & v[:, 2], v[:, 0] & v[:, 1]], axis=1)
+    total = np.bincount(triangles[alive].reshape(-1), minlength=num_edges)
+    failed = np.bincount(failing.reshape(-1), minlength=num_edges)
+    return total, failed, np.bincount(failing[blames], minlength=num_edges)
+
+
+def _reject_greedily(triangles: np.ndarray, fails: np.ndarray, weight: np.ndarray, min_failed: int) -> list[int]:
     """Blamed pairs, most blamed first; each rejection removes its triangles from the counts."""
     alive = np.ones(len(triangles), dtype=bool)
-    of_edge: dict[int, list[int]] = {}
-    for t, tri in enumerate(triangles):
-        for e in tri:
-            of_edge.setdefault(int(e), []).append(t)
     out: list[int] = []
     while True:
-        share = np.where(total > 0, failed / np.maximum(total, 1), 0.0)
-        candidates = np.flatnonzero((failed >= min_failed) & (2 * failed > total))
+        total, failed, blamed = _blame(triangles, fails, alive, len(weight))
+        candidates = np.flatnonzero((blamed >= min_failed) & (2 * failed > total))
         if len(candidates) == 0:
             return out
-        order = np.lexsort((candidates, weight[candidates], -failed[candidates], -share[candidates]))
+        share = failed[candidates] / total[candidates]
+        order = np.lexsort((candidates, weight[candidates], -share, -blamed[candidates]))
         worst = int(candidates[order[0]])
         out.append(worst)
-        for t in of_edge[worst]:
-            if alive[t]:
-                alive[t] = False
-                np.subtract.at(total, triangles[t], 1)
-                if fails[t]:
-                    np.subtract.at(failed, triangles[t], 1)
-
-
-def _reconnect(num_images: int, edges: np.ndarray, accepted: np.ndarray, blamed: Sequence[int],
-               weight: np.ndarray) -> np.ndarray:
-    """(K,) int64 blamed pairs to keep so that the accepted graph has the components it had."""
-    if not blamed:
-        return np.zeros(0, dtype=np.int64)
-    blamed_arr = np.array(blamed, dtype=np.int64)
-    keep = accepted.copy()
-    keep[blamed_arr] = False
-    # A blamed pair is accepted, so every component it joins was one before the rejections.
-    after = connected_components(num_images, edges[keep])
-    ends = np.sort(np.stack([after[edges[blamed_arr, 0]], after[edges[blamed_arr, 1]]], axis=1), axis=1)
-    joins = ends[:, 0] != ends[:, 1]
-    if not np.any(joins):
-        return np.zeros(0, dtype=np.int64)
-    pool, ends = blamed_arr[joins], ends[joins]
-    # Distinct component pairs, the heaviest pair of each, then a forest over the components.
-    order = np.lexsort((pool, -weight[pool]))
-    pool, ends = pool[order], ends[order]
-    _, first = np.unique(ends, axis=0, return_index=True)
-    first = np.sort(first)
-    pool, ends = pool[first], ends[first]
-    return np.sort(pool[maximum_spanning_forest(int(after.max()) + 1, ends, weight[pool])])
+        alive &= ~np.any(triangles == worst, axis=1)
 
 
 def mark_inconsistent(num_images: int, edges: np.ndarray, scores: PairScores, conf: GraphConfig) -> CycleCheck | None:
@@ -203,10 +181,10 @@ def mark_inconsistent(num_images: int, edges: np.ndarray, scores: PairScores, co
     rejected[check.rejected] = True
     scores.accepted[:] = accepted & ~rejected
     scores.reason[:] = [INCONSISTENT if rejected[e] else ("" if earlier[e] else r) for e, r in enumerate(scores.reason)]
-    for e in check.kept_to_connect:
-        logger.info("kept pair %s %s although most of its rotation cycles fail: without it the candidate graph "
-                    "would split", scores.name0[e], scores.name1[e])
+    for e in check.rejected:
+        logger.debug("pair %s %s rejected: %d of its %d rotation triangles fail", scores.name0[e], scores.name1[e],
+                     check.failed[e], check.in_triangles[e])
     logger.info("rotation cycles: %d triangles of accepted pairs, %d fail (above %g deg); %d pairs rejected as "
-                "inconsistent, %d kept to stay connected", len(check.triangles), check.stats()["failed_triangles"],
-                conf.max_cycle_error_deg, len(check.rejected), len(check.kept_to_connect))
+                "inconsistent", len(check.triangles), check.stats()["failed_triangles"], conf.max_cycle_error_deg,
+                len(check.rejected))
     return check
