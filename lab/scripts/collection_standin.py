@@ -10,7 +10,7 @@ original name, long side, gain and gamma. Seeded: the same DATA and seed give th
     python lab/scripts/collection_standin.py DATA OUT [--seed 0]
 
 Then `sara pairs OUT/images RUN` (or `sara run`) and
-`python lab/scripts/collection_standin.py --analyse OUT RUN DATA` prints the accepted candidate pairs that join
+`python lab/scripts/collection_standin.py --analyse OUT RUN DATA [--recheck-deg 20]` prints the accepted candidate pairs that join
 the two scenes (wrong by construction), how many the cycle check rejected and how many were selected, and the
 true rotation errors of the pairs within a scene that it rejected.
 """
@@ -67,13 +67,26 @@ def true_rotations(data: Path) -> dict[tuple[str, str], Rotation]:
     return out
 
 
-def analyse(standin: Path, run: Path, data: Path) -> None:
+def recheck(scores, max_error_deg: float) -> None:
+    """Mark the inconsistent pairs of `scores` again with this tree's check (the run may predate it)."""
+    from sara.config import GraphConfig
+    from sara.selection import mark_inconsistent
+
+    names = sorted(set(scores.name0) | set(scores.name1))
+    index = {n: i for i, n in enumerate(names)}
+    edges = np.array([(index[a], index[b]) for a, b in zip(scores.name0, scores.name1)], dtype=np.int64)
+    mark_inconsistent(len(names), edges, scores, GraphConfig(max_cycle_error_deg=max_error_deg))
+
+
+def analyse(standin: Path, run: Path, data: Path, max_error_deg: float | None) -> None:
     from sara.io.scores import read_scores_csv
     from sara.selection import SELECTED_ROLES
 
     source = {r["name"]: (r["scene"], r["original"]) for r in csv.DictReader(open(standin / "sources.csv"))}
     scores, roles = read_scores_csv(run / "scores.csv")
     roles = roles or [""] * len(scores)
+    if max_error_deg is not None:
+        recheck(scores, max_error_deg)
     truth = true_rotations(data)
     cross = {"candidates": 0, "accepted": 0, "inconsistent": 0, "selected": 0}
     inside_rejected, inside_errors = [], []
@@ -105,9 +118,10 @@ def main() -> None:
     parser.add_argument("paths", type=Path, nargs="+", help="DATA OUT, or with --analyse: OUT RUN DATA")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--analyse", action="store_true")
+    parser.add_argument("--recheck-deg", type=float, help="with --analyse: run this tree's cycle check again first")
     args = parser.parse_args()
     if args.analyse:
-        analyse(*args.paths)
+        analyse(*args.paths, args.recheck_deg)
     else:
         make(*args.paths, args.seed)
 
