@@ -193,9 +193,9 @@ def test_distance_ratios_of_a_hand_built_similarity():
 
 
 def test_the_ratio_test_keeps_repeated_descriptors_out_of_the_best_matches():
-    """20 keypoints of each image share one descriptor, up to tiny noise (a repeated window): their mutual matches are
-    the most similar ones and pair the copies at random, so without the test they take places among the b best; with it the
-    distinct ones are used and the pose is found."""
+    """20 keypoints of each image share one descriptor, up to tiny noise (a repeated window): their mutual
+    matches are the most similar ones and pair the copies at random, so without the test they take places
+    among the b best; with it the distinct ones are used and the pose is found."""
     rng = np.random.default_rng(0)
     num = 60
     points0 = rng.uniform(-0.5, 0.5, (num, 2))

@@ -10,9 +10,9 @@ original name, long side, gain and gamma. Seeded: the same DATA and seed give th
     python lab/scripts/collection_standin.py DATA OUT [--seed 0]
 
 Then `sara pairs OUT/images RUN` (or `sara run`) and
-`python lab/scripts/collection_standin.py --analyse OUT RUN DATA [--recheck-deg 20]` prints the accepted candidate pairs that join
-the two scenes (wrong by construction), how many the cycle check rejected and how many were selected, and the
-true rotation errors of the pairs within a scene that it rejected.
+`python lab/scripts/collection_standin.py --analyse OUT RUN DATA [--recheck-deg 20]` prints the accepted
+candidate pairs that join the two scenes (wrong by construction), how many the cycle check rejected and
+how many were selected, and the true rotation errors of the pairs within a scene that it rejected.
 """
 
 from __future__ import annotations
