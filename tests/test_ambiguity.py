@@ -236,18 +236,18 @@ def test_the_default_run_keeps_rotations_and_registers_everything(finished_run_t
 
 
 def test_an_eager_cycle_check_still_registers_every_view(tmp_path, synthetic_scene):
-    """Half a degree: triangles fail on the pre-match's own noise and pairs are rejected, yet the graph stays
-    connected and every view is registered."""
+    """A fifth of a degree: most triangles fail on the pre-match's own noise and many pairs are rejected, yet
+    the graph stays connected and every view is registered."""
     from sara.config import make_config
     from sara.io.scores import read_scores_csv
     from sara.pipeline import run
 
     images, gt = synthetic_scene
-    conf = make_config("sift-offline", {"graph.max_cycle_error_deg": 0.05, "graph.cycle_min_failed": 1})
+    conf = make_config("sift-offline", {"graph.max_cycle_error_deg": 0.2})
     report = run(conf, images, tmp_path / "out", gt_dir=gt, progress=False)
     scores, _ = read_scores_csv(tmp_path / "out" / "scores.csv")
     rejected = scores.reason.count(INCONSISTENT)
-    assert rejected > 0 and report.stages["pairs"]["rejected"][INCONSISTENT] == rejected
+    assert rejected >= 10 and report.stages["pairs"]["rejected"][INCONSISTENT] == rejected
     assert report.metrics["num_registered"] == 10 and report.metrics["num_components"] == 1
 
 
