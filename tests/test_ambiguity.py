@@ -164,14 +164,14 @@ def test_marking_scores_in_place_is_repeatable_and_switchable(poses):
     scores = make_scores(edges, rotvec)
     assert mark_inconsistent(8, edges, scores, GraphConfig(reject_inconsistent=False)) is None
     assert scores.accepted.all()
-    conf = GraphConfig(max_cycle_error_deg=10.0)
+    conf = GraphConfig(reject_inconsistent=True, max_cycle_error_deg=10.0)
     first = mark_inconsistent(8, edges, scores, conf)
     assert first.rejected.tolist() == [4]
     assert scores.reason[4] == INCONSISTENT and not scores.accepted[4] and scores.accepted.sum() == len(edges) - 1
     assert scores.weight[4] > 0  # measured, kept: only the acceptance changes
     again = mark_inconsistent(8, edges, scores, conf)  # e.g. after widening: the same pairs
     assert again.rejected.tolist() == [4] and scores.reason.count(INCONSISTENT) == 1
-    mark_inconsistent(8, edges, scores, GraphConfig(max_cycle_error_deg=60.0))  # a looser test clears it
+    mark_inconsistent(8, edges, scores, GraphConfig(reject_inconsistent=True, max_cycle_error_deg=60.0))  # clears it
     assert scores.accepted.all() and scores.reason[4] == ""
 
 

@@ -75,7 +75,8 @@ def recheck(scores, max_error_deg: float) -> None:
     names = sorted(set(scores.name0) | set(scores.name1))
     index = {n: i for i, n in enumerate(names)}
     edges = np.array([(index[a], index[b]) for a, b in zip(scores.name0, scores.name1)], dtype=np.int64)
-    mark_inconsistent(len(names), edges, scores, GraphConfig(max_cycle_error_deg=max_error_deg))
+    conf = GraphConfig(reject_inconsistent=True, max_cycle_error_deg=max_error_deg)
+    mark_inconsistent(len(names), edges, scores, conf)
 
 
 def analyse(standin: Path, run: Path, data: Path, max_error_deg: float | None) -> None:
