@@ -398,8 +398,9 @@ def test_score_pairs_on_files_and_round_trip_through_csv(tmp_path):
     path = write_scores_csv(tmp_path / "scores.csv", scores, roles)
     header = path.read_text().splitlines()[0]
     assert header == ("name0,name1,num_matches,num_inliers,num_inliers_all,overlap,parallax_deg,weight,accepted,"
-                      "reason,role")
+                      "reason,role,rotvec_x,rotvec_y,rotvec_z")
     assert np.all(scores.num_inliers_all >= scores.num_inliers)
+    assert np.all(np.isfinite(scores.rotvec[scores.accepted]))
     loaded, loaded_roles = read_scores_csv(path)
     assert loaded_roles == roles
     for field in dataclasses.fields(PairScores):
@@ -422,6 +423,15 @@ def test_a_view_store_scores_as_the_features_do(tmp_path, monkeypatch):
         cached = score_pair(store.view(a), store.view(b), ScoreConfig())
         assert cached == score_pair(views[names[a]], views[names[b]], ScoreConfig())
     assert len(store._unit) == 2 and not views["a.png"].unit and store.view(0).unit
+
+
+def test_a_scores_file_without_rotations_reads_with_nan_rotations(tmp_path):
+    path = tmp_path / "old.csv"
+    path.write_text("name0,name1,num_matches,num_inliers,overlap,parallax_deg,weight,accepted,reason,role\n"
+                    "a,b,50,40,0.1,3.0,0.2,true,,tree\n")
+    scores, roles = read_scores_csv(path)
+    assert roles == ["tree"] and scores.num_inliers_all.tolist() == [40]
+    assert scores.rotvec.shape == (1, 3) and np.all(np.isnan(scores.rotvec))
 
 
 def test_scores_csv_without_roles_and_with_odd_names(tmp_path):

@@ -73,6 +73,35 @@ def mutual_matches_from_similarity(
     return matches, values[order].astype(np.float32)
 
 
+def descriptor_distance_ratios(similarity: np.ndarray, matches: np.ndarray) -> np.ndarray:
+    """Lowe's ratio of each match: its descriptor distance over the distance to the second-best
+    candidate, in either image (the larger of the two ratios).
+
+    Args:
+        similarity: (N0, N1) dot products of unit descriptors; a distance is ``sqrt(2 - 2 s)``.
+        matches: (K, 2) int indices ``(i0, i1)`` of nearest neighbours (e.g. mutual ones).
+    Returns:
+        (K,) float64 ratios in [0, 1]; 0 where the match is an exact copy, 1 where a second
+        candidate is as near (or an image has a single descriptor: no evidence that it is distinct).
+    """
+    sim = np.asarray(similarity, dtype=np.float64)
+    matches = np.asarray(matches).reshape(-1, 2)
+    if len(matches) == 0:
+        return np.zeros(0)
+    i0, i1 = matches[:, 0], matches[:, 1]
+    best = sim[i0, i1]
+
+    def second_best(rows: np.ndarray) -> np.ndarray:  # second largest of each row
+        if rows.shape[1] < 2:
+            return best
+        return np.partition(rows, -2, axis=1)[:, -2]
+
+    second = np.maximum(second_best(sim[i0]), second_best(sim[:, i1].T))
+    nearest = np.sqrt(np.maximum(2.0 - 2.0 * best, 0.0))
+    runner_up = np.sqrt(np.maximum(2.0 - 2.0 * second, 0.0))
+    return np.where(runner_up > _EPS, nearest / np.maximum(runner_up, _EPS), 1.0).clip(0.0, 1.0)
+
+
 def top_k_cosine(desc: np.ndarray, k: int, queries: np.ndarray | None = None) -> np.ndarray:
     """The k most cosine-similar rows of `desc` for each query row (itself excluded), by blocks of
     rows so that memory is O(block * N), never N x N.

@@ -1,8 +1,9 @@
 """`scores.csv`: one row per scored candidate pair, every component of its score and its role.
 
 Columns: name0, name1, num_matches, num_inliers, num_inliers_all, overlap, parallax_deg, weight,
-accepted, reason, role. Floats are written with full precision (repr), so a file read back gives the
-same arrays. Files written before num_inliers_all existed are read with it equal to num_inliers.
+accepted, reason, role, rotvec_x, rotvec_y, rotvec_z. Floats are written with full precision (repr),
+so a file read back gives the same arrays. Files written before num_inliers_all existed are read with
+it equal to num_inliers; files written before the rotation columns, with NaN rotations.
 """
 
 from __future__ import annotations
@@ -34,6 +35,9 @@ class PairScores:
         weight: (P,) float64 ``w``; 0 where the parallax was not measured.
         accepted: (P,) bool.
         reason: P strings, why it was rejected (see sara.scoring.REASONS), "" when accepted.
+        rotvec: (P, 3) float64 the scorer's relative rotation ``cam1_from_cam0`` of each pair as a
+            rotation vector (axis times angle, radians); NaN where RANSAC found no pose or it was not
+            recorded (files of earlier versions).
     """
 
     name0: list[str]
@@ -46,10 +50,14 @@ class PairScores:
     accepted: np.ndarray
     reason: list[str]
     num_inliers_all: np.ndarray | None = None
+    rotvec: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         if self.num_inliers_all is None:
             self.num_inliers_all = np.array(self.num_inliers, dtype=np.int64, copy=True)
+        if self.rotvec is None:
+            self.rotvec = np.full((len(self.name0), 3), np.nan)
+        self.rotvec = np.asarray(self.rotvec, dtype=np.float64).reshape(len(self.name0), 3)
 
     def __len__(self) -> int:
         return len(self.name0)
@@ -65,16 +73,17 @@ class PairScores:
             overlap=column("overlap", np.float64), parallax_deg=column("parallax_deg", np.float64),
             weight=column("weight", np.float64), accepted=column("accepted", bool),
             reason=[s.reason for s in scores], num_inliers_all=column("num_inliers_all", np.int64),
+            rotvec=np.array([s.rotvec for s in scores], dtype=np.float64).reshape(len(scores), 3),
         )
 
 
 CSV_COLUMNS = (
     "name0", "name1", "num_matches", "num_inliers", "num_inliers_all", "overlap", "parallax_deg", "weight",
-    "accepted", "reason", "role",
+    "accepted", "reason", "role", "rotvec_x", "rotvec_y", "rotvec_z",
 )
+ROTVEC_COLUMNS = ("rotvec_x", "rotvec_y", "rotvec_z")
 #: columns a scores file may lack (written by an earlier version)
-OPTIONAL_COLUMNS = ("num_inliers_all",)
-
+OPTIONAL_COLUMNS = ("num_inliers_all", *ROTVEC_COLUMNS)
 
 
 def concat_scores(first: PairScores, second: PairScores) -> PairScores:
@@ -83,9 +92,10 @@ def concat_scores(first: PairScores, second: PairScores) -> PairScores:
         name0=first.name0 + second.name0, name1=first.name1 + second.name1,
         **{name: np.concatenate([getattr(first, name), getattr(second, name)])
            for name in ("num_matches", "num_inliers", "num_inliers_all", "overlap", "parallax_deg", "weight",
-                        "accepted")},
+                        "accepted", "rotvec")},
         reason=first.reason + second.reason,
     )
+
 
 def write_scores_csv(path: Path, scores: PairScores, roles: Sequence[str] | None = None) -> Path:
     """Write one row per pair (columns :data:`CSV_COLUMNS`) atomically; returns ``path``.
@@ -107,6 +117,7 @@ def write_scores_csv(path: Path, scores: PairScores, roles: Sequence[str] | None
                     repr(float(scores.overlap[k])), repr(float(scores.parallax_deg[k])),
                     repr(float(scores.weight[k])), "true" if scores.accepted[k] else "false",
                     scores.reason[k], roles[k] if roles is not None else "",
+                    *(repr(float(v)) for v in scores.rotvec[k]),
                 ])
     return path
 
@@ -154,6 +165,8 @@ def read_scores_csv(path: Path) -> tuple[PairScores, list[str] | None]:
         weight=column("weight", float, np.float64),
         accepted=column("accepted", _parse_bool, bool),
         reason=[r["reason"] for r in rows],
+        rotvec=(np.stack([column(c, float, np.float64) for c in ROTVEC_COLUMNS], axis=1)
+                if all(c in fields for c in ROTVEC_COLUMNS) else None),
     )
     roles = [r["role"] for r in rows]
     return scores, (roles if any(roles) else None)

@@ -152,6 +152,10 @@ def scores(data: RunData) -> str:
               "</span>rejected <span style=\"background:#1f4e9c\"></span>selected <span style=\"background:#9ecae9\">"
               "</span>accepted, not selected</p>")
     why = ", ".join(f"{esc(k)}: {v}" for k, v in reasons.most_common()) or "none"
+    if reasons.get("inconsistent"):
+        why += (" (inconsistent: accepted by the scorer, but its relative rotation does not close around most of "
+                "its triangles of other candidates, as repeated or symmetric structures give; "
+                "graph.reject_inconsistent)")
     return section("Pre-matching scores", legend + f"<div class=\"hists\">{''.join(figs)}</div>",
                    f"{len(s.pairs)} candidate pairs; rejected by reason: {why}. Dashed lines: the scorer's "
                    "thresholds from run.json; values above the 99th percentile are counted in the last bin.")

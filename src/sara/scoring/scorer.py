@@ -3,7 +3,8 @@
 For a pair of images, the scorer
 
 1. matches the top-M keypoints of each image (largest scale first) by mutual nearest neighbours
-   of their L2-normalised descriptors and keeps the best ``num_matches`` by similarity;
+   of their L2-normalised descriptors and keeps the best ``num_matches`` by similarity (with
+   ``max_descriptor_ratio`` < 1, only among those that pass Lowe's ratio test);
 2. runs a short, seeded 5-point RANSAC for the essential matrix (poselib) on those matches;
 3. triangulates the inliers (midpoint method) with the recovered relative pose and takes the
    parallax ``P`` as the median triangulation angle of the points in front of both cameras;
@@ -41,12 +42,13 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 from threadpoolctl import threadpool_limits
 from tqdm import tqdm
 
 from .. import colmap
 from ..config import ScoreConfig
-from ..descriptors import l2_normalize, mutual_matches_from_similarity, mutual_nearest_neighbours
+from ..descriptors import descriptor_distance_ratios, l2_normalize, mutual_matches_from_similarity
 from ..execute import Executor, SerialExecutor
 from ..io.h5 import FeatureCache, Features
 from ..io.scores import PairScores
@@ -112,6 +114,7 @@ class PairScore:
     accepted: bool
     reason: str  # one of REASONS, "" when accepted
     num_inliers_all: int = 0  # mutual nearest neighbours of all M keypoints that fit the pose
+    rotvec: tuple[float, float, float] = (math.nan, math.nan, math.nan)  # cam1_from_cam0, radians
 
 
 def pair_weight(overlap: float, parallax_deg: float, conf: ScoreConfig) -> float:
@@ -157,17 +160,20 @@ def score_pair(view0: ViewFeatures, view1: ViewFeatures, conf: ScoreConfig, *, s
     ``num_inliers`` counts the RANSAC inliers among the b best matches; ``num_inliers_all`` the
     mutual nearest neighbours of all M keypoints within the same error of that pose (at least
     ``num_inliers``; 0 without a pose); ``parallax_deg`` is :func:`inlier_parallax_deg`;
-    ``overlap`` is ``num_inliers / sqrt(N0 * N1)`` with N the keypoints used (at most M per image).
+    ``overlap`` is ``num_inliers / sqrt(N0 * N1)`` with N the keypoints used (at most M per image);
+    ``rotvec`` the RANSAC pose's rotation (NaN without a pose): cycles of them test the pairs'
+    consistency (`sara.selection.ambiguity`).
     A pair that fails a test before the parallax one (no model, too few inliers, too little
     overlap) is not triangulated: nothing uses its parallax, which is NaN ("not measured"), and its
     weight is 0. On low-texture scenes most candidates fail so, and the parallax test was 40% of
     a pair's cost. The same views, settings and seed always give the same score.
     """
-    if view0.unit and view1.unit:  # normalised once per view, not once per pair
-        every, _ = mutual_matches_from_similarity(view0.descriptors @ view1.descriptors.T)
-    else:
-        every, _ = mutual_nearest_neighbours(view0.descriptors, view1.descriptors)
-    matches = every[: conf.num_matches]  # the best b, most similar first
+    similarity = _unit(view0) @ _unit(view1).T
+    every, _ = mutual_matches_from_similarity(similarity)
+    best = every
+    if conf.max_descriptor_ratio < 1.0:  # the b best among the matches distinct in both images
+        best = every[descriptor_distance_ratios(similarity, every) <= conf.max_descriptor_ratio]
+    matches = best[: conf.num_matches]  # the best b, most similar first
     x0, x1 = view0.points_norm[matches[:, 0]], view1.points_norm[matches[:, 1]]
     max_error = conf.ransac_max_error_px * 2.0 / (view0.focal_px + view1.focal_px)
     pose = estimate_relative_pose(x0, x1, max_error=max_error, iterations=conf.ransac_iterations, seed=seed)
@@ -190,7 +196,23 @@ def score_pair(view0: ViewFeatures, view1: ViewFeatures, conf: ScoreConfig, *, s
     return PairScore(
         num_matches=len(matches), num_inliers=num_inliers, overlap=overlap, parallax_deg=parallax_deg,
         weight=weight, accepted=reason == "", reason=reason, num_inliers_all=num_inliers_all,
+        rotvec=_rotation_vector(None if pose is None else pose.R),
     )
+
+
+def _unit(view: ViewFeatures) -> np.ndarray:
+    """(M, D) float32 unit descriptors (a `ViewStore`'s views are normalised once, not per pair)."""
+    if view.descriptors.ndim != 2:
+        raise ValueError(f"descriptors must be (N, D), got shape {view.descriptors.shape}")
+    return view.descriptors if view.unit else l2_normalize(view.descriptors, axis=1)
+
+
+def _rotation_vector(R: np.ndarray | None) -> tuple[float, float, float]:
+    """(3, 3) rotation -> axis times angle (radians); NaN without a rotation."""
+    if R is None:
+        return (math.nan, math.nan, math.nan)
+    x, y, z = Rotation.from_matrix(R).as_rotvec()
+    return (float(x), float(y), float(z))
 
 
 # ----------------------------------------------------------------------------------------

@@ -110,6 +110,7 @@ def _score(ctx: PairContext, candidates: list[Pair]) -> scoring.PairScores:
 
 def _choose(num_images: int, edges: np.ndarray, scores: scoring.PairScores, conf: Any):
     """Roles of the candidates (spanning tree, augmentation, low-parallax rescue)."""
+    selection.mark_inconsistent(num_images, edges, scores, conf.graph)  # in place: reason "inconsistent"
     max_pairs = PairBudget(num_images, conf.budget, conf.rounds).first_round()
     chosen_graph = selection.select_pairs(num_images, edges, scores.weight, scores.parallax_deg, scores.accepted,
                                           conf.graph, max_pairs=max_pairs,
