@@ -91,7 +91,7 @@ def stage_key(images: ImageSet, conf: ExtractConfig, out_dir: Path, *, progress:
     return key_without(set()), digests()[0], lambda: save_digests(cache, digests()[1]), key_without
 
 
-def _key_as_recorded(record: dict | None, key: str, key_without: Callable[[set[str]], str]) -> str:
+def key_as_recorded(record: dict | None, key: str, key_without: Callable[[set[str]], str]) -> str:
     """The finished stage's key when the images differ from its own only by images it set aside
     (a file that vanished during extraction and is gone now, or is back): those stay set aside."""
     if record is None or record.get("done") is not True or record.get("key") == key:
@@ -129,7 +129,7 @@ def run(conf: ExtractConfig, images: ImageSet, out_dir: Path, *, executor: Execu
     out_dir = Path(out_dir)
     db_path, h5_path = out_dir / DB_NAME, out_dir / features_file_name(conf)
     key, digests, save_digests_, key_without = stage_key(images, conf, out_dir, progress=progress)
-    key = _key_as_recorded(records.read_record(out_dir, STAGE), key, key_without)
+    key = key_as_recorded(records.read_record(out_dir, STAGE), key, key_without)
     tic = time.perf_counter()
     if not overwrite and records.is_done(out_dir, STAGE, key) and _outputs_intact(out_dir, db_path, h5_path):
         logger.info("extract: features up to date, skipping")

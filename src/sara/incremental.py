@@ -111,8 +111,9 @@ def update_features(conf: ExtractConfig, images: ImageSet, out_dir: Path, *, exe
     record = records.read_record(out_dir, extract.STAGE)
     if record is None or record.get("done") is not True or not (out_dir / extract.DB_NAME).exists():
         return None
-    key, digests, save_digests, _ = extract.stage_key(images, conf, out_dir, progress=progress)
-    if record.get("key") == key or digests is None:
+    key, digests, save_digests, key_without = extract.stage_key(images, conf, out_dir, progress=progress)
+    if digests is None or extract.key_as_recorded(record, key, key_without) == record.get("key"):
+        # the key holds, or differs only by images the run set aside (gone during extraction): no update
         save_digests()  # the key holds: the extract stage need not read the images again
         if ledger(out_dir).get("phase") == "features":  # images back as they were: the copies are not needed
             discard(out_dir)
