@@ -42,7 +42,7 @@ def _walk_descriptors(n: int, seed: int = 0) -> np.ndarray:
 
 def test_auto_uses_the_order_only_when_the_looks_agree():
     names, desc = _names(40), _walk_descriptors(40)
-    conf = SequenceConfig()
+    conf = SequenceConfig(mode="auto")
     found = sequence.detect(names, desc, conf)
     assert found.used and found.agreement > 0.9
     shuffled = np.random.default_rng(1).permutation(40)

@@ -136,8 +136,8 @@ class _ExportHelpFormatter(argparse.HelpFormatter):
 
 def _add_sequence(p: argparse.ArgumentParser) -> None:
     p.add_argument("--sequence", choices=["auto", "yes", "no"], default=None,
-                   help="the images are frames in capture order, numbered by their names (video, drive): auto "
-                        "(default) when their looks agree with the names' order")
+                   help="the images are frames in capture order, numbered by their names (video, drive): yes, "
+                        "auto (when their looks agree with the names' order) or no (default)")
 
 
 def _add_run(sub: argparse._SubParsersAction) -> None:

@@ -63,10 +63,11 @@ class SequenceConfig:
 
     SECTION: ClassVar[str] = "sequence"
 
-    mode: str = option("auto", choice("auto", "yes", "no"), """auto: the images are frames of a sequence when
+    mode: str = option("no", choice("auto", "yes", "no"), """auto: the images are frames of a sequence when
         their names number them (frame_000123.png, IMG_0042.JPG) and their global descriptors agree (most
-        nearest neighbours are neighbouring frames); yes: whenever the names number them; no: never.""",
-                       advanced=False)
+        nearest neighbours are neighbouring frames); yes: whenever the names number them; no: never (the
+        default: on the shared scenes the window's candidates changed nothing or cost a little, see
+        lab/notes/CAPTURES.md).""", advanced=False)
     window: int = option(5, ints(1), """In a sequence, each frame is also a candidate pair with this many
         following frames, besides its retrieval neighbours (which close the loops).""")
     min_agreement: float = option(0.5, reals(0, 1), """auto: the share of the images' nearest global
