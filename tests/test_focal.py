@@ -108,7 +108,7 @@ def test_the_new_setting_keeps_earlier_extractions_valid(tmp_path: Path):
     """Features extracted before `estimate_focal` existed keep their key at its default."""
     from sara import extract
     from sara.config import ExtractConfig
-    from sara.extract import _key
+    from sara.extract import stage_key as _key
     from sara.io import fingerprint, records
     from sara.io.images import scan_images
 
