@@ -38,6 +38,7 @@ def test_synthetic_end_to_end(tmp_path: Path, synthetic_scene):
     np.testing.assert_allclose(np.linalg.norm(desc.astype(np.float32), axis=0), 1.0, atol=2e-3)
 
 
+@pytest.mark.slow  # a whole exhaustive run of a real scene: a measurement more than a check (4 min on 2 busy cores)
 def test_real_scene_fountain_exhaustive(tmp_path: Path):
     scene = scene_dir("strecha-fountain-P11")
     conf = make_config("sift-offline", {"pairs.method": "exhaustive"})
