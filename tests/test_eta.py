@@ -96,7 +96,8 @@ def test_run_json_carries_the_estimate_and_the_rounds_share(tmp_path: Path, synt
     images, gt = synthetic_scene
     caplog.set_level("INFO", logger="sara")
     out = tmp_path / "out"
-    report = run(make_config("sift-offline", {"match.chunk_size": 3}), images, out, progress=False)
+    report = run(make_config("sift-offline", {"match.chunk_size": 3, "rounds.max_time_fraction": 0.5}), images, out,
+                 progress=False)
     assert "pairs, about" in caplog.text and "pairs/s (first chunk)" in caplog.text
     saved = read_json(out / "run.json")["stages"]
     match, rounds = saved["match"], saved["rounds"]

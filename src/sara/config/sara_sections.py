@@ -205,11 +205,13 @@ class RoundsConfig:
         candidates per left-out view), else runs the pose-guided round once: 3 rounds leave room for a repair
         before and after it.""")
     repair_pairs_per_view: int = option(3, ints(1), "Most candidates a repair round adds per left-out view.")
-    max_time_fraction: float = option(0.5, reals(0), """The rounds after the first model may take at most this
-        fraction of the first round's match + map time (0: no limit): each round's pairs are cut to what its
-        matching may take at the first round's matching rate, and no round starts once the time is spent (the
-        last round's mapping may overrun it). A round that registers no new image and leaves as many models
-        is not repeated. The rounds' share of the time is in run.json (stages.rounds).""")
+    max_time_fraction: float = option(0.0, reals(0), """The rounds after the first model may take at most this
+        fraction of the first round's match + map time (0, the default: no limit): each round's pairs are cut to
+        what its matching may take at the first round's matching rate, and no round starts once the time is
+        spent (the last round's mapping may overrun it). Off by default because the pairs then depend on the
+        machine's speed and load, and a run no longer repeats; 0.5 kept the rounds within about that share in
+        lab/notes/ETA.md. A round that registers no new image and leaves as many models is not repeated. The
+        rounds' share of the time is in run.json (stages.rounds).""")
     support_min_view_inliers: int = option(200, ints(0), """Before the first mapping, a view whose verified
         pairs hold fewer inlier matches than this in all gets up to support_pairs_per_view more accepted
         candidates (best weight first), matched before the mapper runs, within half of the room the pair cap
