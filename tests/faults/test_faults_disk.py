@@ -251,26 +251,28 @@ def test_matching_checks_room_for_every_pair_first(finished_run, images, monkeyp
 
 
 def test_disk_filling_during_extraction(images, tmp_path, monkeypatch, run_cli):
-    """Another program fills the disk while COLMAP extracts: the next chunk is not started (COLMAP
-    would abort the process with a stack dump); one line, exit 4; the same command then resumes."""
+    """Another program fills the disk while COLMAP extracts: the extraction is stopped before the
+    database cannot grow (COLMAP would abort the process with a stack dump); one line, exit 4; the
+    same command then resumes."""
     from sara import colmap
     from sara import io as sara_io
 
-    original, free = colmap.extract_sift, [10**12]
-    calls_after_full = []
+    original, free, watched = colmap.extract_sift, [10**12], []
 
-    def extract_then_fill(*args, **kwargs):
-        if free[0] < 10**12:
-            calls_after_full.append(args)
-        original(*args, **kwargs)
-        free[0] = 2 * 2**20  # filled by someone else meanwhile
+    def fill_then_extract(*args, watch, **kwargs):
+        def watch_and_record(done):
+            watched.append(done)
+            free[0] = 2 * 2**20  # filled by someone else while COLMAP extracts
+            watch(done)
+        original(*args, watch=watch_and_record, **kwargs)
 
-    monkeypatch.setattr(colmap, "extract_sift", extract_then_fill)
+    monkeypatch.setattr(colmap.sift, "WATCH_S", 0.01)  # the watcher looks before COLMAP is through
+    monkeypatch.setattr(colmap, "extract_sift", fill_then_extract)
     monkeypatch.setattr(sara_io, "free_bytes", lambda path: free[0])
     out = tmp_path / "out"
     result = run_cli("run", images, out, "-q")
     assert_error(result, 4, "no space left", "2.1 MB free", "run the same command again")
-    assert calls_after_full == []
+    assert len(watched) == 1  # stopped at the first look that saw the disk full
     monkeypatch.undo()
     assert_ok(run_cli("run", images, out, "-q"))
     assert len(registered(out)) == len(list(images.iterdir()))

@@ -61,7 +61,13 @@ from .reconstruction import (
     registered_images,
 )
 from .sfm import MappedModels, global_mapping, incremental_mapping, mapper_init_requirements
-from .sift import FeatureReader, extract_sift, image_read_problem, sift_of_image
+from .sift import (
+    FeatureReader,
+    count_with_keypoints,
+    extract_sift,
+    image_read_problem,
+    sift_of_image,
+)
 from .synthetic import synthesize_scene
 from .vocabtree import build_visual_index, vocab_tree_retrieval
 
@@ -84,6 +90,7 @@ __all__ = [
     "delete_images",
     "delete_pairs_except",
     "estimate_fundamental",
+    "count_with_keypoints",
     "extract_sift",
     "global_mapping",
     "has_model",

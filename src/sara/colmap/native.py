@@ -62,12 +62,17 @@ def quiet_signals_in_worker() -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
+#: the arguments of the last `send_log_to` in this process, for a process it starts to log alike
+log_settings: dict = {"log_dir": None, "verbose": False}
+
+
 def send_log_to(log_dir: Path | None, *, verbose: bool = False) -> None:
     """Route COLMAP's own log into `log_dir/colmap-<time>.<pid>` (or to the console when verbose).
 
     Without a folder and not verbose, only COLMAP's errors reach the console; with a folder, none
     (sara reports a failure in one line that names the log).
     """
+    log_settings.update(log_dir=log_dir, verbose=verbose)
     logging_ = pycolmap.logging
     if verbose:
         logging_.minloglevel = 0

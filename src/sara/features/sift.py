@@ -20,6 +20,8 @@ from . import Keypoints
 
 #: at most what one keypoint adds to COLMAP's database: (x, y, a11, a12, a21, a22) float32, 128 bytes
 DB_BYTES_PER_KEYPOINT = 6 * 4 + 128
+#: images whose features may be on their way into the database at once (threads and write queue)
+IN_FLIGHT = 16
 
 
 class ColmapSift:
@@ -34,19 +36,23 @@ class ColmapSift:
         return Keypoints(xy=colmap.colmap_to_hloc_keypoints(xy), scores=scale, descriptors=desc)
 
     def extract_to_database(self, db_path: Path, images: ImageSet, names: list[str], *, progress: bool) -> None:
-        """COLMAP's extraction of `names` (already imported into the database), in chunks for progress."""
-        conf = self.conf
-        chunk = max(2, min(16, len(names) // 20 or 2))
+        """COLMAP's extraction of `names` (already imported into the database) in one call, the
+        progress read from the database meanwhile; a disk that another program fills during the
+        extraction stops it cleanly (COLMAP would abort the process when the database cannot grow)."""
+        conf, db_path = self.conf, Path(db_path)
+        start = colmap.count_with_keypoints(db_path) or 0
         with tqdm(total=len(names), desc="extract SIFT", unit="img", disable=not progress) as bar:
-            for start in range(0, len(names), chunk):
-                part = names[start:start + chunk]
-                # COLMAP aborts the process when the database cannot grow: check before each chunk,
-                # so that a disk filled by something else meanwhile ends in a clean error
-                ensure_free_space(Path(db_path).parent, DB_BYTES_PER_KEYPOINT * conf.max_num_features * len(part))
-                colmap.extract_sift(db_path, images.root, part, max_image_size=conf.max_image_size,
-                                    max_num_features=conf.max_num_features, camera_model=conf.camera_model,
-                                    camera_params=conf.camera_params, num_threads=conf.num_threads)
-                bar.update(len(part))
+
+            def watch(done: int | None) -> None:
+                if done is not None:
+                    bar.update(max(0, min(len(names), done - start) - bar.n))
+                # the images on their way into the database at most: one per thread, a few queued
+                ensure_free_space(db_path.parent, DB_BYTES_PER_KEYPOINT * conf.max_num_features * IN_FLIGHT)
+
+            colmap.extract_sift(db_path, images.root, names, max_image_size=conf.max_image_size,
+                                max_num_features=conf.max_num_features, camera_model=conf.camera_model,
+                                camera_params=conf.camera_params, num_threads=conf.num_threads, watch=watch)
+            bar.update(len(names) - bar.n)
 
 
 def make(conf: ExtractConfig) -> ColmapSift:
