@@ -189,7 +189,8 @@ def _check_focal(db_path: Path, h5_path: Path, names: list[str]) -> dict | None:
     prior = float(camera.mean_focal_length())
     found = focal.estimate_from_features(h5_path, names, camera.width, camera.height, prior)
     if found is None:
-        logger.info("focal length: too few pairs of neighbouring images to check COLMAP's prior (%.0f px)", prior)
+        logger.info("focal length: too few pairs of neighbouring images that tell it (a camera moving straight "
+                    "ahead tells none) to check COLMAP's prior (%.0f px)", prior)
         return {"prior_px": prior, "estimated_px": None, "applied": False}
     applied = found.replaces(prior)
     if applied:

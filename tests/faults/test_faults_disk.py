@@ -256,6 +256,7 @@ def test_disk_filling_during_extraction(images, tmp_path, monkeypatch, run_cli):
     same command then resumes."""
     from sara import colmap
     from sara import io as sara_io
+    from sara.colmap import extract_process
 
     original, free, watched = colmap.extract_sift, [10**12], []
 
@@ -266,7 +267,7 @@ def test_disk_filling_during_extraction(images, tmp_path, monkeypatch, run_cli):
             watch(done)
         original(*args, watch=watch_and_record, **kwargs)
 
-    monkeypatch.setattr(colmap.sift, "WATCH_S", 0.01)  # the watcher looks before COLMAP is through
+    monkeypatch.setattr(extract_process, "WATCH_S", 0.01)  # the watcher looks before COLMAP is through
     monkeypatch.setattr(colmap, "extract_sift", fill_then_extract)
     monkeypatch.setattr(sara_io, "free_bytes", lambda path: free[0])
     out = tmp_path / "out"

@@ -8,16 +8,17 @@ pixels; descriptors uint8 RootSIFT as COLMAP stores them.
 from __future__ import annotations
 
 import contextlib
+import os
 from collections.abc import Callable
 from pathlib import Path
 from types import TracebackType
-from typing import Any, Self
+from typing import Self
 
 import numpy as np
 import pycolmap
 
 from .database import image_ids_in, open_pycolmap_database
-from .native import ColmapError, log_settings, native_errors, quiet_signals_in_worker, send_log_to
+from .native import log_settings, native_errors
 
 
 def image_read_problem(path: Path) -> str | None:
@@ -38,49 +39,27 @@ def extract_sift(db_path: Path, image_dir: Path, names: list[str], *, max_image_
 
     One call of COLMAP for all `names`: its reader, extractor and writer threads stay busy to the
     end (in chunks, they idled at the end of each). With `watch`, the call runs in a process of its
-    own and `watch` is called about every `WATCH_S` seconds with the number of images with
-    keypoints in the database (None while it cannot be read); when `watch` raises (Ctrl-C
-    included), the process is stopped and the error raised here. Images finished before stay in
-    the database. (The database is watched from another process because two SQLite libraries in
-    one process, Python's and pycolmap's, break each other's locks on the same file.)"""
-    args = (str(db_path), str(image_dir), list(names), max_image_size, max_num_features, camera_model,
-            camera_params, num_threads)
+    own (`extract_process`) and `watch` is called about every `extract_process.WATCH_S` seconds
+    with the number of images with keypoints in the database (None while it cannot be read); when
+    `watch` raises (Ctrl-C included), the process is stopped and the error raised here. Images
+    finished before stay in the database."""
+    args = {"db_path": str(db_path), "image_dir": str(image_dir), "names": list(names),
+            "max_image_size": max_image_size, "max_num_features": max_num_features,
+            "camera_model": camera_model, "camera_params": camera_params, "num_threads": num_threads}
     if watch is None:
         with native_errors("extract SIFT features", Path(db_path).parent):
-            _extract(*args)
+            extract_now(**args)
         return
-    import multiprocessing
+    from . import extract_process
 
-    ctx = multiprocessing.get_context("spawn")
-    receive, send = ctx.Pipe(duplex=False)
-    child = ctx.Process(target=_extract_in_child, args=(args, dict(log_settings), send), daemon=True,
-                        name="sara-extract-sift")
-    child.start()
-    send.close()
-    try:
-        while child.is_alive() and not receive.poll(WATCH_S):
-            watch(count_with_keypoints(Path(db_path)))
-        outcome, error = receive.recv() if receive.poll() else ("gone", None)
-        child.join()
-    except BaseException:
-        child.terminate()  # SQLite keeps the database whole: the images written before stay
-        child.join()
-        raise
-    finally:
-        receive.close()
-    if outcome == "gone":
-        raise ColmapError(f"COLMAP's SIFT extraction ended without a word (exit code {child.exitcode}); "
-                          f"its log is in {Path(db_path).parent / 'logs'}")
-    if error is not None:
-        raise error
+    job = {"args": args, "db_path": str(db_path), "parent": os.getpid(), "verbose": log_settings["verbose"],
+           "log_dir": str(log_settings["log_dir"]) if log_settings["log_dir"] else None}
+    extract_process.run_watched(job, lambda: watch(count_with_keypoints(Path(db_path))))
 
 
-#: seconds between two looks at the database while COLMAP extracts
-WATCH_S = 0.5
-
-
-def _extract(db_path: str, image_dir: str, names: list[str], max_image_size: int, max_num_features: int,
-             camera_model: str, camera_params: str, num_threads: int) -> None:
+def extract_now(db_path: str, image_dir: str, names: list[str], max_image_size: int, max_num_features: int,
+                camera_model: str, camera_params: str, num_threads: int) -> None:
+    """pycolmap's extraction into the database, in this process and thread."""
     opts = pycolmap.FeatureExtractionOptions()
     opts.max_image_size = max_image_size
     opts.num_threads = num_threads
@@ -90,36 +69,6 @@ def _extract(db_path: str, image_dir: str, names: list[str], max_image_size: int
     reader.camera_params = camera_params
     pycolmap.extract_features(db_path, image_dir, image_names=names, reader_options=reader,
                               extraction_options=opts, device=pycolmap.Device.cpu)
-
-
-def _extract_in_child(args: tuple, log: dict, send: Any) -> None:
-    """The extraction in its own process: logs as its parent does; sends ("done", None or the error)."""
-    quiet_signals_in_worker()
-    _end_with_parent()
-    send_log_to(log["log_dir"], verbose=log["verbose"])
-    try:
-        with native_errors("extract SIFT features", Path(args[0]).parent):
-            _extract(*args)
-        send.send(("done", None))
-    except Exception as exc:  # noqa: BLE001 - handed to the parent, which raises it
-        send.send(("done", exc))
-
-
-def _end_with_parent() -> None:
-    """End this process when its parent is gone (killed with SIGKILL, it could not stop us): no
-    orphan goes on writing into a database that the next run resumes."""
-    import multiprocessing
-    import os
-    import threading
-
-    parent = multiprocessing.parent_process()
-
-    def watch() -> None:
-        parent.join()
-        os._exit(1)
-
-    if parent is not None:
-        threading.Thread(target=watch, daemon=True, name="sara-parent-watch").start()
 
 
 def count_with_keypoints(db_path: Path) -> int | None:

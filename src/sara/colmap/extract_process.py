@@ -1,0 +1,98 @@
+"""COLMAP's SIFT extraction in a process of its own, watched from sara's.
+
+The parent reads the progress from the database while COLMAP writes it. That must happen in
+another process: Python's SQLite and pycolmap's, two libraries in one process, do not see each
+other's locks on the same file, and a reader closing its connection tore the write-ahead log from
+under COLMAP's writer (SIGBUS). The child is a plain `python -m` of this module, not a
+multiprocessing child, so a user's script without a `__main__` guard is not run again in it.
+
+Protocol: the job as JSON in argv; the child prints one JSON line, {"ok": true} or
+{"error": "disk" | "colmap", "message": ...}, and ends with its parent.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+#: seconds between two looks at the database (parent) and at the parent (child)
+WATCH_S = 0.5
+
+
+def run_watched(job: dict[str, Any], watch: Callable[[], None]) -> None:
+    """Run the extraction `job` in a child process, calling `watch()` every `WATCH_S` seconds;
+    when `watch` raises (Ctrl-C and sara's SIGTERM included), the child is stopped (the images it
+    wrote stay: SQLite keeps the database whole) and the error is raised here."""
+    from ..io import disk_full_error
+    from .native import ColmapError
+
+    child = subprocess.Popen([sys.executable, "-m", __name__, json.dumps(job)], stdout=subprocess.PIPE,
+                             stdin=subprocess.DEVNULL, text=True)
+    try:
+        while child.poll() is None:
+            try:
+                child.wait(WATCH_S)
+            except subprocess.TimeoutExpired:
+                watch()
+        answer = child.stdout.read() if child.stdout else ""
+    except BaseException:
+        child.terminate()
+        child.wait()
+        raise
+    finally:
+        if child.stdout:
+            child.stdout.close()
+    lines = answer.strip().splitlines()
+    result = json.loads(lines[-1]) if lines and lines[-1].startswith("{") else None
+    folder = Path(job["db_path"]).parent
+    if result is None:
+        raise ColmapError(f"COLMAP's SIFT extraction ended without a word (exit code {child.returncode}); "
+                          f"its log is in {folder / 'logs'}")
+    if result.get("error") == "disk":
+        raise disk_full_error(folder)
+    if "error" in result:
+        raise ColmapError(result["message"])
+
+
+def _end_with_parent(parent: int) -> None:
+    """End this process when its parent is gone (a SIGKILL gave it no chance to stop us): no orphan
+    goes on writing into a database that the next run resumes."""
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(WATCH_S)
+        os._exit(1)
+
+    threading.Thread(target=watch, daemon=True, name="sara-parent-watch").start()
+
+
+def main(argv: list[str]) -> int:
+    job = json.loads(argv[0])
+    _end_with_parent(job["parent"])
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C reaches the parent too: it decides
+    from . import native, sift
+
+    native.send_log_to(Path(job["log_dir"]) if job["log_dir"] else None, verbose=job["verbose"])
+    try:
+        with native.native_errors("extract SIFT features", Path(job["db_path"]).parent):
+            sift.extract_now(**job["args"])
+    except OSError as exc:
+        print(json.dumps({"error": "disk", "message": str(exc)}), flush=True)
+        return 1
+    except Exception as exc:  # noqa: BLE001 - told to the parent, which raises it
+        print(json.dumps({"error": "colmap", "message": str(exc)}), flush=True)
+        return 1
+    print(json.dumps({"ok": True}), flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
