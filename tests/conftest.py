@@ -32,6 +32,21 @@ def finished_run_template(tmp_path_factory, synthetic_scene) -> Path:
     return out
 
 
+@pytest.fixture(scope="session")
+def scene_features(tmp_path_factory, synthetic_scene) -> Path:
+    """The synthetic scene's features alone (`sara extract`, the default preset), made once for the
+    session. A test about a later stage starts its run from them, as bench methods share one
+    extraction: `share_features(scene_features, out)` (sara.pipeline), then the run skips
+    extraction. Read it, never write into it."""
+    from harness import run_redirected
+
+    images, _ = synthetic_scene
+    out = tmp_path_factory.mktemp("features") / "out"
+    result = run_redirected("extract", images, out, "-q")
+    assert result.code == 0, result.err
+    return out
+
+
 @pytest.fixture
 def finished_run(finished_run_template, tmp_path) -> Path:
     """This test's own copy of the finished run (`tmp_path / "out"`), free to change or damage."""
