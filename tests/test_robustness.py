@@ -167,9 +167,12 @@ def test_second_run_on_same_output_is_refused(tmp_path: Path, synthetic_scene, r
     assert "Traceback" not in result.err
 
 
-def test_same_seed_same_pairs(tmp_path: Path, synthetic_scene):
+def test_same_seed_same_pairs(tmp_path: Path, synthetic_scene, scene_features):
+    from sara.pipeline import share_features
+
     images, _ = synthetic_scene
     conf = make_config("sift-offline")
+    share_features(scene_features, tmp_path / "one")  # the selection is the point: it starts from the features
     run(conf, images, tmp_path / "one", progress=False, stop_after="pairs")
     shutil.copytree(tmp_path / "one", tmp_path / "two")
     for name in ("pairs.txt", "scores.csv", "global-vlad.h5", ".sara/pairs.json"):
