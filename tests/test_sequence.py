@@ -110,7 +110,12 @@ def test_a_run_with_starved_sift_records_and_prints_the_advice(synthetic_scene, 
 
     from harness import run_redirected
 
-    images, _ = synthetic_scene
+    import shutil
+
+    images = tmp_path / "images"  # three of the scene's views: the advice reads the mean, not the count
+    images.mkdir()
+    for path in sorted(synthetic_scene[0].iterdir())[:3]:
+        shutil.copyfile(path, images / path.name)
     out = tmp_path / "out"
     result = run_redirected("pairs", images, out, "-s", "extract.max_num_features=200", "-q", "--method", "exhaustive")
     assert result.code == 0, result.err
