@@ -19,6 +19,15 @@ def synthetic_scene(tmp_path_factory):
 
 
 @pytest.fixture(scope="session")
+def small_scene(tmp_path_factory):
+    """The synthetic scene with 5 views (10 pairs, each verified): (images folder, gt folder), for a
+    test that extracts several times and needs a scene, not this one."""
+    from sara.synthetic import make_scene
+
+    return make_scene(tmp_path_factory.mktemp("small"), num_images=5)
+
+
+@pytest.fixture(scope="session")
 def finished_run_template(tmp_path_factory, synthetic_scene) -> Path:
     """One finished `sara run --gt` of the synthetic scene for the whole session, made through the
     command line as a user makes it (report.html included). Read it, never write into it: a test
