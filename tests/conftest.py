@@ -19,6 +19,15 @@ def synthetic_scene(tmp_path_factory):
 
 
 @pytest.fixture(scope="session")
+def small_scene(tmp_path_factory):
+    """The synthetic scene with 5 views (10 pairs, each verified): (images folder, gt folder), for a
+    test that extracts several times and needs a scene, not this one."""
+    from sara.synthetic import make_scene
+
+    return make_scene(tmp_path_factory.mktemp("small"), num_images=5)
+
+
+@pytest.fixture(scope="session")
 def finished_run_template(tmp_path_factory, synthetic_scene) -> Path:
     """One finished `sara run --gt` of the synthetic scene for the whole session, made through the
     command line as a user makes it (report.html included). Read it, never write into it: a test
@@ -28,6 +37,21 @@ def finished_run_template(tmp_path_factory, synthetic_scene) -> Path:
     images, gt = synthetic_scene
     out = tmp_path_factory.mktemp("finished") / "out"
     result = run_redirected("run", images, out, "-q", "--gt", gt)
+    assert result.code == 0, result.err
+    return out
+
+
+@pytest.fixture(scope="session")
+def scene_features(tmp_path_factory, synthetic_scene) -> Path:
+    """The synthetic scene's features alone (`sara extract`, the default preset), made once for the
+    session. A test about a later stage starts its run from them, as bench methods share one
+    extraction: `share_features(scene_features, out)` (sara.pipeline), then the run skips
+    extraction. Read it, never write into it."""
+    from harness import run_redirected
+
+    images, _ = synthetic_scene
+    out = tmp_path_factory.mktemp("features") / "out"
+    result = run_redirected("extract", images, out, "-q")
     assert result.code == 0, result.err
     return out
 

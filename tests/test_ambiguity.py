@@ -234,15 +234,16 @@ def test_the_default_run_keeps_rotations_and_registers_everything(finished_run_t
     assert "inconsistent" not in record["stages"]["pairs"]["rejected"]
 
 
-def test_an_eager_cycle_check_still_registers_every_view(tmp_path, synthetic_scene):
+def test_an_eager_cycle_check_still_registers_every_view(tmp_path, synthetic_scene, scene_features):
     """A fifth of a degree: most triangles fail on the pre-match's own noise and many pairs are rejected, yet
     the graph stays connected and every view is registered."""
     from sara.config import make_config
     from sara.io.scores import read_scores_csv
-    from sara.pipeline import run
+    from sara.pipeline import run, share_features
 
     images, gt = synthetic_scene
     conf = make_config("sift-offline", {"graph.reject_inconsistent": True, "graph.max_cycle_error_deg": 0.2})
+    share_features(scene_features, tmp_path / "out")  # the run starts at pair selection, the cycle check's stage
     report = run(conf, images, tmp_path / "out", gt_dir=gt, progress=False)
     scores, _ = read_scores_csv(tmp_path / "out" / "scores.csv")
     rejected = scores.reason.count(INCONSISTENT)

@@ -10,6 +10,10 @@ hloc is not installed here (it pulls CUDA torch), so the hloc example runs again
 export_dir / f"{features}_{conf['output']}_{pairs.stem}.h5"`): the extractor writes SuperPoint-like
 features of the scene's true observations and the matcher is a mutual nearest neighbour matcher
 (see tests/test_hloc.py).
+
+The examples' output folders `out/` and `pairs_only/` start with the scene's SIFT features
+(`scene_features`, made once for the session), so their runs resume after extraction, as a run
+does on a folder that holds its features: two extractions less, and extraction is tested elsewhere.
 """
 
 from __future__ import annotations
@@ -70,10 +74,14 @@ def fake_hloc(gt_dir: Path) -> types.ModuleType:
     return package
 
 
-def test_readme_python_examples_run(synthetic_scene, tmp_path: Path, monkeypatch):
+def test_readme_python_examples_run(synthetic_scene, scene_features, tmp_path: Path, monkeypatch):
+    from sara.pipeline import share_features
+
     images, gt = synthetic_scene
     shutil.copytree(images, tmp_path / "images")
     shutil.copytree(gt, tmp_path / "gt")
+    for out in ("out", "pairs_only"):
+        share_features(scene_features, tmp_path / out)
     package = fake_hloc(tmp_path / "gt")
     for name, module in (("hloc", package), ("hloc.extract_features", package.extract_features),
                          ("hloc.match_features", package.match_features)):

@@ -48,7 +48,14 @@ class ToyMutualNN:
         return mutual_nearest_neighbours(feats0.descriptors, feats1.descriptors)
 
 
-@pytest.fixture
+#: the toy run's settings. The toy matcher's mutual neighbours hold many outliers: COLMAP's verification
+#: runs RANSAC to its limit on each pair, its time grows with the matches. 400 keypoints and each image
+#: with the next three (24 pairs): 2 s; 8192 keypoints (790 found) and the 45 exhaustive pairs: 20 s
+TOY_RUN = ["-q", "--workers", "1", "-s", "extract.backend=toy-cv-sift", "-s", "extract.max_num_features=400",
+           "-s", "sequential.overlap=3"]
+
+
+@pytest.fixture(scope="module")
 def toy_backends():
     features.BACKENDS.register("toy-cv-sift", ToyOpenCvSift)
     matchers.BACKENDS.register("toy-nn", ToyMutualNN)
@@ -57,11 +64,18 @@ def toy_backends():
     matchers.BACKENDS.unregister("toy-nn")
 
 
-def test_toy_backends_run_end_to_end(toy_backends, synthetic_scene, tmp_path: Path) -> None:
+@pytest.fixture(scope="module")
+def toy_run(toy_backends, synthetic_scene, tmp_path_factory) -> tuple[int, Path]:
+    """`sara run` with the toy backends, once for the module: (exit code, output folder). Read it only."""
     images, _ = synthetic_scene
-    out = tmp_path / "out"
-    code = main(["run", str(images), str(out), "-q", "--workers", "1", "-s", "extract.backend=toy-cv-sift",
-                 "-s", "match.backend=toy-nn", "--pairs", "exhaustive"])
+    out = tmp_path_factory.mktemp("toy") / "out"
+    code = main(["run", str(images), str(out), *TOY_RUN, "-s", "match.backend=toy-nn", "--pairs", "sequential"])
+    return code, out
+
+
+def test_toy_backends_run_end_to_end(toy_run, synthetic_scene) -> None:
+    images, _ = synthetic_scene
+    code, out = toy_run
     assert code == 0
     assert (out / "features-toy-cv-sift.h5").is_file()
     num_images = len(list(images.iterdir()))
@@ -89,16 +103,16 @@ class RecordingExecutor:
             yield fn(item)
 
 
-def test_match_stage_keeps_every_worker_busy_and_run_settings_keep_matches(toy_backends, synthetic_scene,
-                                                                         tmp_path: Path) -> None:
+def test_match_stage_keeps_every_worker_busy_and_run_settings_keep_matches(toy_run, tmp_path: Path) -> None:
+    import shutil
+
     from sara import match
     from sara.config import MatchConfig
     from sara.io import records
 
-    images, _ = synthetic_scene
-    out = tmp_path / "out"
-    assert main(["run", str(images), str(out), "-q", "--workers", "1", "-s", "extract.backend=toy-cv-sift",
-                 "-s", "match.backend=toy-nn", "--pairs", "exhaustive"]) == 0
+    code, finished = toy_run
+    assert code == 0
+    out = Path(shutil.copytree(finished, tmp_path / "out"))
     pairs_path, db, feats = out / "pairs.txt", out / "database.db", out / "features-toy-cv-sift.h5"
     num_pairs = len(pairs_path.read_text().split("\n")) - 1
     # fewer pairs than one chunk: split so that both workers get several chunks each
@@ -154,8 +168,9 @@ def test_networks_on_a_gpu_run_in_the_driver_not_in_every_worker(toy_backends, s
         images, _ = synthetic_scene
         out = tmp_path / "out"
         executor = AnyJobExecutor()
-        extract.run(ExtractConfig(backend="toy-gpu-sift"), scan_images(images, progress=False), out,
-                    executor=executor, progress=False)
+        # 400 keypoints, as TOY_RUN: the toy matches' verification is quick
+        extract.run(ExtractConfig(backend="toy-gpu-sift", max_num_features=400), scan_images(images, progress=False),
+                    out, executor=executor, progress=False)
         assert executor.jobs == []  # no extraction job went to a worker
         feats = out / "features-toy-gpu-sift.h5"
         assert feats.is_file()

@@ -17,10 +17,17 @@ from sara.io import records
 from sara.pipeline import share_features
 
 
+def _features_shared(scene_features: Path, bench_out: Path, scene: Path) -> None:
+    """The bench's extraction of `scene` into `bench_out` done already (the scene's shared features): its
+    own extraction skips, as when a bench runs again (the name-orders test extracts for real)."""
+    share_features(scene_features, bench_out / scene.name / "features")
+
+
 @pytest.fixture(scope="module")
-def bench_run(tmp_path_factory, synthetic_scene):
+def bench_run(tmp_path_factory, synthetic_scene, scene_features):
     images, _ = synthetic_scene
     out = tmp_path_factory.mktemp("bench")
+    _features_shared(scene_features, out, images.parent)
     conf = make_config("sift-offline", {"sequential.overlap": "3"})
     result = bench.run_bench([images.parent], out, conf, methods=["exhaustive", "sequential"], progress=False)
     return images.parent, out, conf, result
@@ -165,8 +172,8 @@ def test_a_renamed_scene_holds_the_same_images_and_poses_under_new_names(synthet
         new_names(originals, 0)
 
 
-def test_bench_over_name_orders_sums_each_method_up_over_the_namings(synthetic_scene, tmp_path: Path):
-    images, _ = synthetic_scene
+def test_bench_over_name_orders_sums_each_method_up_over_the_namings(small_scene, tmp_path: Path):
+    images, _ = small_scene  # 5 views: two namings, two extractions
     out = tmp_path / "bench"
     result = bench.run_bench([images.parent], out, make_config(), methods=["exhaustive"], progress=False,
                              plot=False, name_orders=1)
@@ -257,8 +264,9 @@ def test_kinds_are_parsed_and_bad_ones_refused():
         bench.parse_kinds(["kitti-seq1"])
 
 
-def test_sequential_with_loop_detection_is_a_bench_method(bench_run, tmp_path: Path):
+def test_sequential_with_loop_detection_is_a_bench_method(bench_run, scene_features, tmp_path: Path):
     scene, _, conf, _ = bench_run
+    _features_shared(scene_features, tmp_path / "b", scene)
     assert bench.parse_methods("sequential-loop,sara") == ["sequential-loop", "sara"]
     result = bench.run_bench([scene], tmp_path / "b", conf, methods=["sequential-loop"], progress=False, plot=False,
                              kinds={scene.name: "orbit"})

@@ -87,15 +87,16 @@ def test_the_time_limit_wins_over_the_pair_caps_of_the_rounds_after_mapping():
     assert held.support(200) == free.support(200) and held.first_round() == free.first_round()
 
 
-def test_run_json_carries_the_estimate_and_the_rounds_share(tmp_path: Path, synthetic_scene, caplog):
+def test_run_json_carries_the_estimate_and_the_rounds_share(tmp_path: Path, synthetic_scene, scene_features, caplog):
     """`sara run` with small chunks: the estimate is logged after the first chunk, run.json holds it
     beside the time taken, and both reports show them with the rounds' share of the time."""
-    from sara.pipeline import run
+    from sara.pipeline import run, share_features
     from sara.report.html import write_report
 
     images, gt = synthetic_scene
     caplog.set_level("INFO", logger="sara")
     out = tmp_path / "out"
+    share_features(scene_features, out)  # the estimates come after extraction
     report = run(make_config("sift-offline", {"match.chunk_size": 3, "rounds.max_time_fraction": 0.5}), images, out,
                  progress=False)
     assert "pairs, about" in caplog.text and "pairs/s (first chunk)" in caplog.text
@@ -118,14 +119,15 @@ def test_run_json_carries_the_estimate_and_the_rounds_share(tmp_path: Path, synt
 
 
 def test_the_rounds_stop_when_their_time_is_spent_and_do_not_repeat_a_round_without_gain(
-        tmp_path: Path, synthetic_scene, caplog, monkeypatch):
+        tmp_path: Path, synthetic_scene, scene_features, caplog, monkeypatch):
     from sara.pairs import Round
     from sara.pairs.sara.rounds import SaraRounds
-    from sara.pipeline import run
+    from sara.pipeline import run, share_features
 
     images, _ = synthetic_scene
     caplog.set_level("INFO", logger="sara")
     out = tmp_path / "out"
+    share_features(scene_features, out)  # the rounds' budget counts the time after extraction
     # a budget no round fits in: the first model is the final one (its tracks extended)
     report = run(make_config("sift-offline", {"rounds.max_time_fraction": 1e-9}), images, out, progress=False)
     rounds = read_json(out / "run.json")["stages"]["rounds"]

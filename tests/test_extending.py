@@ -11,6 +11,7 @@ from sara.io import read_json, records
 from sara.io.pairs import read_pairs
 from sara.mapping import model_digest
 from sara.pairs import SOURCES, NoRounds, PairContext, PairResult, PairSource, Round
+from sara.pipeline import share_features
 
 
 def next_image(ctx: PairContext) -> PairResult:
@@ -27,10 +28,12 @@ class TwoApart(NoRounds):
         return Round(wanted, "two-apart")
 
 
-def test_a_toy_pair_source_with_rounds_runs_end_to_end(synthetic_scene, tmp_path: Path, monkeypatch) -> None:
+def test_a_toy_pair_source_with_rounds_runs_end_to_end(synthetic_scene, scene_features, tmp_path: Path,
+                                                       monkeypatch) -> None:
     images, _ = synthetic_scene
     monkeypatch.setitem(SOURCES._entries, "next", PairSource(select=next_image, rounds=TwoApart()))
     out = tmp_path / "out"
+    share_features(scene_features, out)  # the run starts at pair selection, where the toy source comes in
     assert main(["run", str(images), str(out), "--pairs", "next", "--quiet", "-s", "rounds.extend_tracks=false"]) == 0
     names = sorted(p.name for p in images.iterdir())
     pairs = read_pairs(out / "pairs.txt")
@@ -51,10 +54,12 @@ def test_a_toy_pair_source_with_rounds_runs_end_to_end(synthetic_scene, tmp_path
     assert model_digest(out / "sparse") == model and records.done_info(out, "rounds") == ledger
 
 
-def test_a_source_without_rounds_is_a_plain_function(synthetic_scene, tmp_path: Path, monkeypatch) -> None:
+def test_a_source_without_rounds_is_a_plain_function(synthetic_scene, scene_features, tmp_path: Path,
+                                                     monkeypatch) -> None:
     images, _ = synthetic_scene
     monkeypatch.setitem(SOURCES._entries, "next", next_image)
     out = tmp_path / "out"
+    share_features(scene_features, out)  # the run starts at pair selection, where the toy source comes in
     assert main(["run", str(images), str(out), "--pairs", "next", "--quiet"]) == 0
     assert len(read_pairs(out / "pairs.txt")) == len(list(images.iterdir())) - 1
     assert "rounds" not in read_json(out / "run.json")["stages"]

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from harness import assert_error, assert_ok, registered, sara_process, signal_when
+from harness import assert_error, assert_ok, registered, run_redirected, signal_when
 from sara import colmap
 from sara.io.h5 import list_names
 
@@ -42,7 +42,7 @@ def first_run(scene, tmp_path_factory) -> tuple[Path, Path]:
     base = tmp_path_factory.mktemp("inc_first")
     images = _folder(scene, base / "images", sorted(os.listdir(scene))[:NUM_FIRST])
     out = base / "out"
-    assert_ok(sara_process("run", images, out, "-q"))
+    assert_ok(run_redirected("run", images, out, "-q"))
     return images, out
 
 
@@ -69,12 +69,12 @@ def _state(out: Path) -> dict:
             "pairs": _pairs(out), "update": update}
 
 
-def test_added_images_are_extracted_paired_and_matched_alone(scene, copy_of_first):
+def test_added_images_are_extracted_paired_and_matched_alone(scene, copy_of_first, run_cli):
     images, out = copy_of_first
     before = _pairs(out)
     new = sorted(os.listdir(scene))[NUM_FIRST:]
     _folder(scene, images, new)
-    assert_ok(sara_process("run", images, out, "-q"))
+    assert_ok(run_cli("run", images, out, "-q"))
     update = json.loads((out / "run.json").read_text())["stages"]["update"]
     assert update["num_added"] == 2 and update["num_removed"] == 0 and update["num_changed"] == 0
     assert update["num_extracted"] == 2 and _record(out, "extract")["info"]["num_extracted"] == 2
@@ -87,16 +87,16 @@ def test_added_images_are_extracted_paired_and_matched_alone(scene, copy_of_firs
     assert sorted(registered(out)) == sorted(os.listdir(images))
     assert len(list_names(out / "features-sift.h5")) == NUM_FIRST + 2
     # the same command again: nothing to do, the counts of the update stay in run.json
-    assert_ok(sara_process("run", images, out, "-q"))
+    assert_ok(run_cli("run", images, out, "-q"))
     assert json.loads((out / "run.json").read_text())["stages"]["update"] == update
 
 
-def test_removed_images_leave_database_features_pairs_and_model(copy_of_first):
+def test_removed_images_leave_database_features_pairs_and_model(copy_of_first, run_cli):
     images, out = copy_of_first
     gone = sorted(os.listdir(images))[2:4]
     for name in gone:
         (images / name).unlink()
-    assert_ok(sara_process("run", images, out, "-q"))
+    assert_ok(run_cli("run", images, out, "-q"))
     state = _state(out)
     assert state["update"]["num_removed"] == 2 and state["update"]["num_extracted"] == 0
     for key in ("database", "features", "model"):
@@ -105,14 +105,14 @@ def test_removed_images_leave_database_features_pairs_and_model(copy_of_first):
     assert state["model"] == sorted(os.listdir(images))
 
 
-def test_changed_image_is_extracted_again(copy_of_first):
+def test_changed_image_is_extracted_again(copy_of_first, run_cli):
     images, out = copy_of_first
     name = sorted(os.listdir(images))[1]
     pixels = np.asarray(Image.open(images / name)).astype(np.int16)
     pixels[::7, ::5] += 3  # a slight retouch: new bytes, nearly the same picture
     Image.fromarray(np.clip(pixels, 0, 255).astype(np.uint8)).save(images / name)
     keypoints_before = _record(out, "extract")["info"]["keypoints_mean"]
-    assert_ok(sara_process("run", images, out, "-q"))
+    assert_ok(run_cli("run", images, out, "-q"))
     update = json.loads((out / "run.json").read_text())["stages"]["update"]
     assert update["changed"] == [name] and update["num_extracted"] == 1 and update["num_added"] == 0
     assert _record(out, "extract")["info"]["keypoints_mean"] != keypoints_before  # its features are new
@@ -120,10 +120,10 @@ def test_changed_image_is_extracted_again(copy_of_first):
     assert sorted(registered(out)) == sorted(os.listdir(images))
 
 
-def test_changed_extraction_settings_are_refused_with_the_setting_named(scene, copy_of_first):
+def test_changed_extraction_settings_are_refused_with_the_setting_named(scene, copy_of_first, run_cli):
     images, out = copy_of_first
     _folder(scene, images, sorted(os.listdir(scene))[NUM_FIRST:])
-    result = sara_process("run", images, out, "-q", "-s", "extract.max_num_features=1000")
+    result = run_cli("run", images, out, "-q", "-s", "extract.max_num_features=1000")
     assert_error(result, 3, "extract.max_num_features", "--overwrite")
     assert not (out / ".sara" / "update").exists()
 
@@ -142,7 +142,7 @@ def uninterrupted(scene, first_run, tmp_path_factory) -> dict:
     base = tmp_path_factory.mktemp("inc_reference")
     images = _changed_folder(scene, Path(shutil.copytree(images, base / "images")))
     reference = Path(shutil.copytree(out, base / "out", symlinks=True))
-    assert_ok(sara_process("run", images, reference, "-q"))
+    assert_ok(run_redirected("run", images, reference, "-q"))
     return _state(reference)
 
 
@@ -169,6 +169,6 @@ def test_killed_update_then_rerun_gives_the_uninterrupted_result(marker, scene, 
         result = signal_when(cmd, out / ".sara" / marker, signal.SIGKILL)
         if result.code == 0:
             pytest.skip("the run finished before the kill")
-    assert_ok(sara_process(*cmd))
+    assert_ok(run_cli(*cmd))  # the killed process is gone: the same command again, here
     assert _state(out) == uninterrupted
     assert not (out / ".sara" / "update").exists()

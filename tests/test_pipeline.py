@@ -9,7 +9,7 @@ import pytest
 from harness import scene_dir
 from sara.config import make_config
 from sara.io import read_json
-from sara.pipeline import run
+from sara.pipeline import run, share_features
 
 
 def test_synthetic_end_to_end(tmp_path: Path, synthetic_scene):
@@ -59,7 +59,8 @@ def test_real_scene_temple_sparse_ring_repair_round_continues_the_model(tmp_path
     assert report.metrics["num_registered"] == 16 and report.metrics["num_components"] == 1
 
 
-def test_sara_extends_the_tracks_of_the_final_model_once(tmp_path: Path, synthetic_scene, caplog, monkeypatch):
+def test_sara_extends_the_tracks_of_the_final_model_once(tmp_path: Path, synthetic_scene, scene_features, caplog,
+                                                        monkeypatch):
     """Without a pose-guided refinement (the round switched off), the final model's tracks are still
     extended, once: a second run leaves the model as it is and does not see it as damaged."""
     from sara.mapping import model_digest
@@ -67,7 +68,9 @@ def test_sara_extends_the_tracks_of_the_final_model_once(tmp_path: Path, synthet
 
     images, gt = synthetic_scene
     caplog.set_level("INFO", logger="sara")
-    out = tmp_path / "out"
+    out, failed, off = tmp_path / "out", tmp_path / "failed", tmp_path / "off"
+    for folder in (out, failed, off):  # the rounds are the point: the three runs start from the scene's features
+        share_features(scene_features, folder)
     conf = make_config("sift-offline", {"rounds.pose_guided_pairs_per_image": 0})
     report = run(conf, images, out, gt_dir=gt, progress=False)
     assert report.metrics["num_registered"] == 10
@@ -86,25 +89,25 @@ def test_sara_extends_the_tracks_of_the_final_model_once(tmp_path: Path, synthet
         raise OSError("features file unreadable")
 
     monkeypatch.setattr(SaraRounds, "finish", broken)
-    failed = tmp_path / "failed"
     report = run(conf, images, failed, progress=False)
     assert "keeping the model as it is" in caplog.text and "extension" not in report.stages.get("rounds", {})
     assert report.stages["map"]["num_registered"] == 10
 
     # switched off: the model is the mapper's
-    off = tmp_path / "off"
     run(make_config("sift-offline", {"rounds.pose_guided_pairs_per_image": 0, "rounds.extend_tracks": False}),
         images, off, progress=False)
     assert "extension" not in read_json(off / "run.json")["stages"].get("rounds", {})
 
 
-def test_weakly_matched_views_get_pairs_before_the_first_mapping(tmp_path: Path, synthetic_scene, caplog):
+def test_weakly_matched_views_get_pairs_before_the_first_mapping(tmp_path: Path, synthetic_scene, scene_features,
+                                                                caplog):
     """With a bar no view reaches, SARA matches more pairs before mapping; pairs.txt, the records
     and the report count them, and a second run changes nothing."""
     images, gt = synthetic_scene
     caplog.set_level("INFO", logger="sara")
     conf = make_config("sift-offline", {"rounds.support_min_view_inliers": 10**6})
     out = tmp_path / "out"
+    share_features(scene_features, out)  # the rounds before mapping are the point, not extraction
     report = run(conf, images, out, gt_dir=gt, progress=False)
     assert "more pairs before mapping" in caplog.text
     pairs = report.stages["pairs"]
@@ -129,7 +132,7 @@ def test_weakly_matched_views_get_pairs_before_the_first_mapping(tmp_path: Path,
     assert again.metrics["auc"] == report.metrics["auc"]
 
 
-def test_verifying_the_same_matches_again_gives_the_same_inliers(tmp_path: Path, synthetic_scene):
+def test_verifying_the_same_matches_again_gives_the_same_inliers(tmp_path: Path, synthetic_scene, scene_features):
     """COLMAP's verification draws its RANSAC samples from a fixed seed: without one, a pair's inlier
     count depended on the thread that verified it (identical runs differed by 1-3 inliers).
 
@@ -145,6 +148,7 @@ def test_verifying_the_same_matches_again_gives_the_same_inliers(tmp_path: Path,
     images, _ = synthetic_scene
     conf = make_config("sift-offline", {"pairs.method": "exhaustive"})
     first = tmp_path / "first"
+    share_features(scene_features, first)  # the verification is the point, not extraction
     run(conf, images, first, progress=False, stop_after="pairs")
     db = match_pairs(conf, first / "pairs.txt", first / "features-sift.h5", first, progress=False)
 

@@ -48,9 +48,14 @@ def ray_cluster(tmp_path_factory):
     _ray("stop", "--force", env=env)
 
 
-def test_ray_cluster_gives_the_serial_pairs(ray_cluster, synthetic_scene, tmp_path: Path, monkeypatch) -> None:
+def test_ray_cluster_gives_the_serial_pairs(ray_cluster, synthetic_scene, scene_features, tmp_path: Path,
+                                           monkeypatch) -> None:
+    from sara.pipeline import share_features
+
     images, _ = synthetic_scene
     serial, clustered = tmp_path / "serial", tmp_path / "ray"
+    for out in (serial, clustered):  # COLMAP's SIFT runs in the driver: the runs start at pair selection
+        share_features(scene_features, out)
     # 45 candidates in 6 shards: the scorer really runs on Ray. The pairs added for weakly matched
     # views depend on COLMAP's verified inlier counts, which vary by a few between identical runs
     # (multi-threaded RANSAC): off, so that pairs.txt compares the selection itself

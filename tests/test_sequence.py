@@ -107,10 +107,14 @@ def test_low_texture_is_said_before_matching_with_the_backend_to_try():
 def test_a_run_with_starved_sift_records_and_prints_the_advice(synthetic_scene, tmp_path: Path):
     """A real run, cut to 200 SIFT features per image: the warning reaches the console and run.json."""
     import json
+    import shutil
 
     from harness import run_redirected
 
-    images, _ = synthetic_scene
+    images = tmp_path / "images"  # three of the scene's views: the advice reads the mean, not the count
+    images.mkdir()
+    for path in sorted(synthetic_scene[0].iterdir())[:3]:
+        shutil.copyfile(path, images / path.name)
     out = tmp_path / "out"
     result = run_redirected("pairs", images, out, "-s", "extract.max_num_features=200", "-q", "--method", "exhaustive")
     assert result.code == 0, result.err

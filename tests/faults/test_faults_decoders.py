@@ -64,7 +64,10 @@ def test_image_vanished_during_extraction_stays_set_aside(images, tmp_path, run_
 
     from sara import colmap
 
-    folder = Path(shutil.copytree(images, tmp_path / "images"))
+    folder = tmp_path / "images"  # five of the scene's views: the first run extracts them all
+    folder.mkdir()
+    for path in sorted(images.iterdir())[:5]:
+        shutil.copyfile(path, folder / path.name)
     gone = sorted(folder.iterdir())[3]
     original = colmap.extract_sift
 
@@ -84,7 +87,7 @@ def test_image_vanished_during_extraction_stays_set_aside(images, tmp_path, run_
         assert_ok(result)
         assert f"skipping {gone.name}: {reason}" in result.err
         assert json.loads((out / "run.json").read_text())["skipped_images"] == {gone.name: reason}
-        assert gone.name not in registered(out) and len(registered(out)) == 9
+        assert gone.name not in registered(out) and len(registered(out)) == 4
     shutil.copyfile(sorted(images.iterdir())[3], gone)  # back again: it stays set aside, as documented
     result = run_cli("run", folder, out, "-q")
     assert_ok(result)

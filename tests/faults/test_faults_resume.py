@@ -132,10 +132,15 @@ def test_aliased_names_left_behind_are_given_back(spaced_folder, tmp_path, run_c
     `sara run`, `sara match` and `sara map` each find the names again."""
     from sara.match import space_free_names
 
+    folder = tmp_path / "images"  # the four spaced names and the next view: five to extract, not ten
+    folder.mkdir()
+    plain = sorted(p.name for p in spaced_folder.iterdir() if p.name not in SPACED_NAMES)
+    for name in [*SPACED_NAMES, plain[0]]:
+        shutil.copyfile(spaced_folder / name, folder / name)
     out = tmp_path / "out"
-    assert_ok(run_cli("run", spaced_folder, out, "-q"))
+    assert_ok(run_cli("run", folder, out, "-q"))
     left = []  # held, so that no clean-up runs when the generator is collected
-    for command in (["run", spaced_folder, out], ["match", out], ["map", out]):
+    for command in (["run", folder, out], ["match", out], ["map", out]):
         left.append(space_free_names(out / "database.db", out))
         left[-1].__enter__()  # noqa: PLC2801 - as a kill leaves it: the exit never runs
         assert aliased_in(out / "database.db")

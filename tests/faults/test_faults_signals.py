@@ -10,7 +10,7 @@ import signal
 
 import pytest
 
-from harness import assert_error, assert_kept, assert_ok, registered, sara_process, signal_when, snapshot
+from harness import assert_error, assert_kept, assert_ok, registered, signal_when, snapshot
 
 SIGNALS = {
     "SIGTERM during pair selection": (signal.SIGTERM, 143, "pairs"),
@@ -22,7 +22,7 @@ SIGNALS = {
 
 
 @pytest.mark.parametrize("case", list(SIGNALS))
-def test_signal_is_one_clean_line_and_resumes(case, finished_run, images, finished_run_template):
+def test_signal_is_one_clean_line_and_resumes(case, finished_run, images, finished_run_template, run_cli):
     signum, code, stage = SIGNALS[case]
     if stage == "pairs":
         (finished_run / "pairs.txt").unlink()
@@ -37,6 +37,6 @@ def test_signal_is_one_clean_line_and_resumes(case, finished_run, images, finish
     assert_error(result, code, f"interrupted by {signal.Signals(signum).name}", "run the same command again")
     assert not marker.exists()  # its half-built output is removed
     assert_kept(before, finished_run, ("database.db", "features-sift.h5", "run.json", "report.md"))
-    result = sara_process("run", images, finished_run, "-q")
+    result = run_cli("run", images, finished_run, "-q")  # the signalled process is gone: the same command, here
     assert_ok(result)
     assert registered(finished_run) == registered(finished_run_template)
