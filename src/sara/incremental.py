@@ -9,9 +9,10 @@ the image folder no longer matches them and the extraction settings are the same
 2. updates the copy: deletes the images that go (features, matches, geometries), imports and
    extracts only the images that come, and writes the new features file beside it;
 3. swaps the copies in and records the extract stage as done for the new images;
-4. the later stages then continue from what was kept: the pair source pairs only the new images
-   (`sara.pairs.Extension`), the match stage matches only the pairs not yet matched, and the
-   mapper continues from the kept model (`start_model`), so only new work is done.
+4. the later stages then continue from what was kept: the pair source selects again, reusing the
+   kept scores (`sara.pairs.Extension`), the match stage matches only the selected pairs not yet
+   matched (and drops the earlier ones no longer selected), and the mapper continues from the kept
+   model (`start_model`), so only new work is done.
 
 Its ledger (the `update` record) names the phase reached, so a run killed at any moment resumes
 with the same command: before the swap the folder's own files are untouched; the swap finishes on
@@ -341,8 +342,10 @@ def finish(out_dir: Path, extract_key: str, summary: dict[str, Any]) -> dict[str
     _save(out_dir, extract_key, {"phase": "done", "summary": report})
     shutil.rmtree(_work(out_dir), ignore_errors=True)
     logger.warning("update: %d added, %d removed, %d changed; %d images extracted, %d pairs scored, %d pairs "
-                   "matched", report["num_added"], report["num_removed"], report["num_changed"],
-                   report["num_extracted"], report.get("num_pairs_scored", 0), report.get("num_pairs_matched", 0))
+                   "matched (%d earlier pairs kept, %d dropped)", report["num_added"], report["num_removed"],
+                   report["num_changed"], report["num_extracted"], report.get("num_pairs_scored", 0),
+                   report.get("num_pairs_matched", 0), report.get("num_pairs_kept", 0),
+                   report.get("num_pairs_dropped", 0))
     return report
 
 

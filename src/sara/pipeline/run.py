@@ -133,8 +133,9 @@ def _update_counts(out_dir: Path, extract_key: str) -> dict[str, int]:
     selected = records.done_info(out_dir, pairs_stage.STAGE)
     scored = selected.get("num_candidates_scored", selected.get("num_candidates", 0))
     final = {tuple(sorted(p)) for p in read_pairs(out_dir / pairs_stage.PAIRS_NAME)}
-    return {"num_pairs_scored": scored, "num_pairs_kept": len(kept),
-            "num_pairs_matched": len(final - {tuple(sorted(p)) for p in kept})}
+    earlier = {tuple(sorted(p)) for p in kept}  # matched before the update
+    return {"num_pairs_scored": scored, "num_pairs_kept": len(final & earlier),
+            "num_pairs_dropped": len(earlier - final), "num_pairs_matched": len(final - earlier)}
 
 
 def match_pairs(conf: PipelineConfig, pairs_path: Path, features_path: Path, out_dir: Path, *,
