@@ -45,6 +45,10 @@ logger = logging.getLogger(__name__)
 STAGE = "update"
 WORK = "update"
 PAIRS_NAME, SCORES_NAME, MODEL_NAME = "pairs.txt", "scores.csv", "model"
+#: the database as the update left it, before any pair was selected again: the earlier matches of
+#: the unchanged images, from which the match stage copies a pair selected again instead of
+#: matching it (the match stage removes pairs no longer selected from the database)
+MATCHED_NAME = "matched.db"
 
 
 @dataclass(frozen=True)
@@ -134,6 +138,7 @@ def update_features(conf: ExtractConfig, images: ImageSet, out_dir: Path, *, exe
         current = _plan(out_dir, conf, info, digests, key)
     tic = time.perf_counter()
     extracted = _update_copies(conf, images, out_dir, compare(old_digests, digests), info, executor, progress)
+    colmap.copy_database(_work(out_dir) / extract.DB_NAME, _work(out_dir) / MATCHED_NAME)
     current.update(phase="swap", num_extracted=extracted, extract_time_s=time.perf_counter() - tic,
                    extract_info=_new_info(out_dir, info, digests, extracted, time.perf_counter() - tic))
     _save(out_dir, key, current)
@@ -312,6 +317,12 @@ def kept_pairs(out_dir: Path, update: dict[str, Any]) -> tuple[list[Pair], list[
     pairs = read_pairs(work / PAIRS_NAME) if (work / PAIRS_NAME).is_file() else []
     scores = work / SCORES_NAME if (work / SCORES_NAME).is_file() else None
     return [p for p in pairs if p[0] in kept and p[1] in kept], sorted(set(now) - kept), scores
+
+
+def earlier_matches(out_dir: Path, extract_key: str) -> Path | None:
+    """The earlier matches of a pending update (`MATCHED_NAME`; None when there is none)."""
+    path = _work(out_dir) / MATCHED_NAME
+    return path if pending(out_dir, extract_key) is not None and path.is_file() else None
 
 
 def start_model(out_dir: Path, extract_key: str) -> Path | None:
