@@ -85,12 +85,15 @@ def _state(out: Path) -> dict:
 def test_added_images_are_extracted_paired_and_matched_alone(scene, copy_of_first):
     images, out = copy_of_first
     before = _pairs(out)
+    cameras = {c.camera_id for c in colmap.cameras_by_image(out / "database.db").values()}
     new = sorted(os.listdir(scene))[NUM_FIRST:]
     _folder(scene, images, new)
     assert_ok(sara_process("run", images, out, "-q"))
     update = json.loads((out / "run.json").read_text())["stages"]["update"]
     assert update["num_added"] == 2 and update["num_removed"] == 0 and update["num_changed"] == 0
     assert update["num_extracted"] == 2 and _record(out, "extract")["info"]["num_extracted"] == 2
+    if len(cameras) == 1:  # a single-camera run: the new views share its camera
+        assert {c.camera_id for c in colmap.cameras_by_image(out / "database.db").values()} == cameras
     # only pairs with a new image were scored: the 2 x 6 with the kept views and the one between them
     assert update["num_pairs_scored"] == 2 * NUM_FIRST + 1
     final = _pairs(out)

@@ -230,7 +230,9 @@ def _import(db: Path, images: ImageSet, names: list[str], conf: ExtractConfig, i
     mode = info.get("camera_mode", "per_image")
     shared = colmap.shared_camera(db) if mode == "single" else None
     same = shared is not None and all(images.sizes[n] == (shared.width, shared.height) for n in names)
-    colmap.import_images(db, images.root, names, camera_mode="per_folder" if mode == "per_folder" else "per_image",
+    # pycolmap makes a camera per image in `per_image` mode even when given the shared one
+    camera_mode = "single" if same else "per_folder" if mode == "per_folder" else "per_image"
+    colmap.import_images(db, images.root, names, camera_mode=camera_mode,
                          camera_model=conf.camera_model, camera_params=conf.camera_params,
                          default_focal_length_factor=conf.default_focal_length_factor,
                          existing_camera_id=shared.camera_id if same else None)
