@@ -3,6 +3,7 @@ are extracted, paired, matched and mapped on their own; the rest is kept."""
 
 from __future__ import annotations
 
+import csv
 import json
 import os
 import shutil
@@ -61,6 +62,18 @@ def _pairs(out: Path) -> set[tuple[str, str]]:
     return {tuple(sorted(line.split())) for line in (out / "pairs.txt").read_text().splitlines() if line.strip()}
 
 
+def _selected(out: Path) -> set[tuple[str, str]]:
+    """The pairs the pairs stage selected (scores.csv's selected roles)."""
+    with open(out / "scores.csv", newline="") as f:
+        return {tuple(sorted((r["name0"], r["name1"]))) for r in csv.DictReader(f)
+                if r["role"] not in ("rejected", "unselected")}
+
+
+def _geometry_pairs(out: Path) -> set[tuple[str, str]]:
+    names = {i: n for n, i in colmap.image_ids(out / "database.db").items()}
+    return {tuple(sorted((names[i], names[j]))) for i, j, _ in colmap.verified_image_pairs(out / "database.db")}
+
+
 def _state(out: Path) -> dict:
     """What an update leaves: images in the database, features file and model, pairs, counts."""
     update = json.loads((out / "run.json").read_text())["stages"]["update"]
@@ -72,18 +85,28 @@ def _state(out: Path) -> dict:
 def test_added_images_are_extracted_paired_and_matched_alone(scene, copy_of_first, run_cli):
     images, out = copy_of_first
     before = _pairs(out)
+    cameras = {c.camera_id for c in colmap.cameras_by_image(out / "database.db").values()}
     new = sorted(os.listdir(scene))[NUM_FIRST:]
     _folder(scene, images, new)
     assert_ok(run_cli("run", images, out, "-q"))
     update = json.loads((out / "run.json").read_text())["stages"]["update"]
     assert update["num_added"] == 2 and update["num_removed"] == 0 and update["num_changed"] == 0
     assert update["num_extracted"] == 2 and _record(out, "extract")["info"]["num_extracted"] == 2
+    if len(cameras) == 1:  # a single-camera run: the new views share its camera
+        assert {c.camera_id for c in colmap.cameras_by_image(out / "database.db").values()} == cameras
     # only pairs with a new image were scored: the 2 x 6 with the kept views and the one between them
     assert update["num_pairs_scored"] == 2 * NUM_FIRST + 1
-    assert before <= _pairs(out)  # every earlier pair kept (its matches too)
-    new_pairs = _pairs(out) - before
+    final = _pairs(out)
+    new_pairs = final - before
     assert update["num_pairs_matched"] == len(new_pairs) > 0
+    assert update["num_pairs_kept"] == len(final & before) and update["num_pairs_dropped"] == len(before - final)
     assert any(set(pair) & set(new) for pair in new_pairs)
+    # the whole graph selected again: the selection a run from scratch of the 8 views makes
+    scratch = out.parent / "scratch"
+    assert_ok(sara_process("pairs", images, scratch, "-q"))
+    assert _selected(out) == _selected(scratch) == _pairs(scratch)
+    # the database holds the geometries of exactly the pairs matched (earlier pairs no longer selected left it)
+    assert _geometry_pairs(out) == final
     assert sorted(registered(out)) == sorted(os.listdir(images))
     assert len(list_names(out / "features-sift.h5")) == NUM_FIRST + 2
     # the same command again: nothing to do, the counts of the update stay in run.json
@@ -172,3 +195,32 @@ def test_killed_update_then_rerun_gives_the_uninterrupted_result(marker, scene, 
     assert_ok(run_cli(*cmd))  # the killed process is gone: the same command again, here
     assert _state(out) == uninterrupted
     assert not (out / ".sara" / "update").exists()
+
+
+def test_update_reuses_the_scores_of_unchanged_pairs_and_scores_the_others(monkeypatch):
+    """Cached scores come back in the candidates' order (a pair stored the other way round with its
+    inverse rotation); only candidates without one are scored."""
+    from sara.io.scores import PairScores
+    from sara.pairs.sara import source
+
+    def scores(pairs, overlap, rotvec):
+        n = len(pairs)
+        return PairScores(name0=[a for a, _ in pairs], name1=[b for _, b in pairs],
+                          num_matches=np.full(n, 50), num_inliers=np.full(n, 40), overlap=np.array(overlap, float),
+                          parallax_deg=np.full(n, 5.0), weight=np.array(overlap, float), accepted=np.ones(n, bool),
+                          reason=[""] * n, rotvec=np.array(rotvec, float).reshape(n, 3))
+
+    cached = scores([("a", "b"), ("c", "b")], [0.1, 0.2], [[0, 0, 1], [0, 1, 0]])
+    asked = []
+
+    def fake_score(ctx, candidates):
+        asked.extend(candidates)
+        return scores(candidates, [0.9] * len(candidates), [[1, 0, 0]] * len(candidates))
+
+    monkeypatch.setattr(source, "_score", fake_score)
+    got, num_scored = source._score_or_reuse(None, [("b", "c"), ("a", "d"), ("a", "b")], cached)
+    assert asked == [("a", "d")] and num_scored == 1
+    assert list(zip(got.name0, got.name1)) == [("b", "c"), ("a", "d"), ("a", "b")]
+    assert got.overlap.tolist() == [0.2, 0.9, 0.1]
+    assert got.rotvec.tolist() == [[0, -1, 0], [1, 0, 0], [0, 0, 1]]
+    assert cached.rotvec.tolist() == [[0, 0, 1], [0, 1, 0]]  # the cache itself unchanged

@@ -9,9 +9,10 @@ the image folder no longer matches them and the extraction settings are the same
 2. updates the copy: deletes the images that go (features, matches, geometries), imports and
    extracts only the images that come, and writes the new features file beside it;
 3. swaps the copies in and records the extract stage as done for the new images;
-4. the later stages then continue from what was kept: the pair source pairs only the new images
-   (`sara.pairs.Extension`), the match stage matches only the pairs not yet matched, and the
-   mapper continues from the kept model (`start_model`), so only new work is done.
+4. the later stages then continue from what was kept: the pair source selects again, reusing the
+   kept scores (`sara.pairs.Extension`), the match stage matches only the selected pairs not yet
+   matched (and drops the earlier ones no longer selected), and the mapper continues from the kept
+   model (`start_model`), so only new work is done.
 
 Its ledger (the `update` record) names the phase reached, so a run killed at any moment resumes
 with the same command: before the swap the folder's own files are untouched; the swap finishes on
@@ -44,6 +45,10 @@ logger = logging.getLogger(__name__)
 STAGE = "update"
 WORK = "update"
 PAIRS_NAME, SCORES_NAME, MODEL_NAME = "pairs.txt", "scores.csv", "model"
+#: the database as the update left it, before any pair was selected again: the earlier matches of
+#: the unchanged images, from which the match stage copies a pair selected again instead of
+#: matching it (the match stage removes pairs no longer selected from the database)
+MATCHED_NAME = "matched.db"
 
 
 @dataclass(frozen=True)
@@ -133,6 +138,7 @@ def update_features(conf: ExtractConfig, images: ImageSet, out_dir: Path, *, exe
         current = _plan(out_dir, conf, info, digests, key)
     tic = time.perf_counter()
     extracted = _update_copies(conf, images, out_dir, compare(old_digests, digests), info, executor, progress)
+    colmap.copy_database(_work(out_dir) / extract.DB_NAME, _work(out_dir) / MATCHED_NAME)
     current.update(phase="swap", num_extracted=extracted, extract_time_s=time.perf_counter() - tic,
                    extract_info=_new_info(out_dir, info, digests, extracted, time.perf_counter() - tic))
     _save(out_dir, key, current)
@@ -224,7 +230,9 @@ def _import(db: Path, images: ImageSet, names: list[str], conf: ExtractConfig, i
     mode = info.get("camera_mode", "per_image")
     shared = colmap.shared_camera(db) if mode == "single" else None
     same = shared is not None and all(images.sizes[n] == (shared.width, shared.height) for n in names)
-    colmap.import_images(db, images.root, names, camera_mode="per_folder" if mode == "per_folder" else "per_image",
+    # pycolmap makes a camera per image in `per_image` mode even when given the shared one
+    camera_mode = "single" if same else "per_folder" if mode == "per_folder" else "per_image"
+    colmap.import_images(db, images.root, names, camera_mode=camera_mode,
                          camera_model=conf.camera_model, camera_params=conf.camera_params,
                          default_focal_length_factor=conf.default_focal_length_factor,
                          existing_camera_id=shared.camera_id if same else None)
@@ -313,6 +321,12 @@ def kept_pairs(out_dir: Path, update: dict[str, Any]) -> tuple[list[Pair], list[
     return [p for p in pairs if p[0] in kept and p[1] in kept], sorted(set(now) - kept), scores
 
 
+def earlier_matches(out_dir: Path, extract_key: str) -> Path | None:
+    """The earlier matches of a pending update (`MATCHED_NAME`; None when there is none)."""
+    path = _work(out_dir) / MATCHED_NAME
+    return path if pending(out_dir, extract_key) is not None and path.is_file() else None
+
+
 def start_model(out_dir: Path, extract_key: str) -> Path | None:
     """The kept main model a pending update's mapping continues from (None: map from the database)."""
     update = pending(out_dir, extract_key)
@@ -341,8 +355,10 @@ def finish(out_dir: Path, extract_key: str, summary: dict[str, Any]) -> dict[str
     _save(out_dir, extract_key, {"phase": "done", "summary": report})
     shutil.rmtree(_work(out_dir), ignore_errors=True)
     logger.warning("update: %d added, %d removed, %d changed; %d images extracted, %d pairs scored, %d pairs "
-                   "matched", report["num_added"], report["num_removed"], report["num_changed"],
-                   report["num_extracted"], report.get("num_pairs_scored", 0), report.get("num_pairs_matched", 0))
+                   "matched (%d earlier pairs kept, %d dropped)", report["num_added"], report["num_removed"],
+                   report["num_changed"], report["num_extracted"], report.get("num_pairs_scored", 0),
+                   report.get("num_pairs_matched", 0), report.get("num_pairs_kept", 0),
+                   report.get("num_pairs_dropped", 0))
     return report
 
 

@@ -37,7 +37,7 @@ BYTES_PER_PAIR = 64 * 1024
 
 def run(conf: MatchConfig, pairs_path: Path, db_path: Path, out_dir: Path, *, features_path: Path,
         features_backend: str = "sift", executor: Executor | None = None, progress: bool = True,
-        beside: bool = False, overwrite: bool = False) -> Path:
+        beside: bool = False, overwrite: bool = False, reserve: Path | None = None) -> Path:
     """Match every pair of `pairs_path` into the database; returns the database that holds the
     matches (counts and the time taken go into the stage record).
 
@@ -48,6 +48,9 @@ def run(conf: MatchConfig, pairs_path: Path, db_path: Path, out_dir: Path, *, fe
     copy, `.sara/database.next.db`, which is returned; the caller moves it into place with
     `commit` once what follows succeeded, so a failed run keeps the previous matches. When no pair
     gets a verified geometry, NoResultError is raised and the previous matches are kept.
+
+    `reserve`: a database of the same images and keypoints whose matches were made with the same
+    settings (an incremental update's earlier matches): a pair it holds is copied, not matched.
     """
     out_dir = Path(out_dir)
     next_db = out_dir / ".sara" / NEXT_DB_NAME
@@ -77,6 +80,8 @@ def run(conf: MatchConfig, pairs_path: Path, db_path: Path, out_dir: Path, *, fe
     work = _work_database(db_path, next_db, out_dir, key, conf_key, pairs, names, same_settings=same_settings,
                           beside=beside and before["num_matched_pairs"] > 0)
     _remove_other_pairs(work, pairs, names)  # keep the matches that are still wanted
+    if reserve is not None and same_settings:
+        _restore(reserve, work, pairs, names)
     records.mark_started(out_dir, STAGE, key)
     elapsed, num_done, estimate = _match_all(conf, matcher, features_backend, features_path, pairs, names, work,
                                              out_dir, key, conf_key, executor, progress)
@@ -356,6 +361,14 @@ def _remove_other_pairs(db_path: Path, pairs: list[Pair], ids: dict[str, int]) -
     """Delete matches of pairs that are not in `pairs` (left by another pairs file)."""
     wanted = {tuple(sorted((ids[a], ids[b]))) for a, b in pairs}
     colmap.delete_pairs_except(db_path, wanted)
+
+
+def _restore(reserve: Path, work: Path, pairs: list[Pair], ids: dict[str, int]) -> None:
+    """Copy the matches of the pairs not yet in `work` that `reserve` holds."""
+    missing = [(ids[a], ids[b]) for a, b in _unmatched(work, pairs, ids)]
+    restored = colmap.copy_pairs(reserve, work, missing) if missing else 0
+    if restored:
+        logger.info("match: %d pairs matched before taken from the earlier matches", restored)
 
 
 def _unmatched(db_path: Path, pairs: list[Pair], ids: dict[str, int]) -> list[Pair]:

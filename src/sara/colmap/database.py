@@ -201,6 +201,22 @@ def has_two_view_geometry(db_path: Path, id_pairs: list[tuple[int, int]]) -> lis
         return [bool(db.exists_two_view_geometry(i, j)) for i, j in id_pairs]
 
 
+def copy_pairs(src_db: Path, dst_db: Path, id_pairs: list[tuple[int, int]]) -> int:
+    """Copy the matches and two-view geometry of every (image_id0, image_id1) pair of `id_pairs`
+    that `src_db` has a geometry of into `dst_db` (a database of the same images and keypoints,
+    without a geometry of these pairs); returns how many pairs were copied."""
+    with open_pycolmap_database(src_db) as src:
+        found = [(i, j, src.read_matches(i, j), src.read_two_view_geometry(i, j)) for i, j in id_pairs
+                 if src.exists_two_view_geometry(i, j)]
+    with open_pycolmap_database(dst_db) as dst:
+        for i, j, matches, geometry in found:
+            if dst.exists_matches(i, j):  # unverified matches a killed run left
+                dst.delete_matches(i, j)
+            dst.write_matches(i, j, matches)
+            dst.write_two_view_geometry(i, j, geometry)
+    return len(found)
+
+
 def clear_matches(db_path: Path) -> None:
     """Delete every match and two-view geometry (images, cameras and features kept)."""
     with open_pycolmap_database(db_path) as db:

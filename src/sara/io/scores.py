@@ -86,15 +86,25 @@ ROTVEC_COLUMNS = ("rotvec_x", "rotvec_y", "rotvec_z")
 OPTIONAL_COLUMNS = ("num_inliers_all", *ROTVEC_COLUMNS)
 
 
+_ARRAY_FIELDS = ("num_matches", "num_inliers", "num_inliers_all", "overlap", "parallax_deg", "weight", "accepted",
+                 "rotvec")
+
+
 def concat_scores(first: PairScores, second: PairScores) -> PairScores:
     """The scores of `first`'s pairs followed by `second`'s."""
     return PairScores(
         name0=first.name0 + second.name0, name1=first.name1 + second.name1,
-        **{name: np.concatenate([getattr(first, name), getattr(second, name)])
-           for name in ("num_matches", "num_inliers", "num_inliers_all", "overlap", "parallax_deg", "weight",
-                        "accepted", "rotvec")},
+        **{name: np.concatenate([getattr(first, name), getattr(second, name)]) for name in _ARRAY_FIELDS},
         reason=first.reason + second.reason,
     )
+
+
+def take_scores(scores: PairScores, rows: Sequence[int]) -> PairScores:
+    """The scores of `scores`' pairs at `rows`, in that order."""
+    pick = np.asarray(rows, dtype=np.int64).reshape(-1)
+    return PairScores(name0=[scores.name0[k] for k in pick], name1=[scores.name1[k] for k in pick],
+                      **{name: getattr(scores, name)[pick] for name in _ARRAY_FIELDS},
+                      reason=[scores.reason[k] for k in pick])
 
 
 def write_scores_csv(path: Path, scores: PairScores, roles: Sequence[str] | None = None) -> Path:

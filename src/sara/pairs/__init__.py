@@ -50,11 +50,13 @@ class PairResult:
 
 @dataclass
 class Extension:
-    """An earlier selection to extend for images added to (or changed in) the collection.
+    """An earlier selection, matched, of a collection that images were added to, removed from or
+    changed in since.
 
-    kept_pairs: the earlier pairs between images that stay unchanged (already matched);
-    new_names: the images that need pairs; scores_path: the earlier selection's scores file, if
-    any (its candidates between kept images need no scoring again).
+    kept_pairs: the earlier pairs between images that stay unchanged (already matched: a source
+    that selects them again costs no matching); new_names: the images that are new or changed;
+    scores_path: the earlier selection's scores file, if any (its candidates between unchanged
+    images need no scoring again).
     """
 
     kept_pairs: list[Pair]

@@ -127,7 +127,8 @@ def render_report(report: RunReport) -> str:
         lines += ["", f"Update: {update['num_added']} images added, {update['num_removed']} removed, "
                       f"{update['num_changed']} changed since the previous run; {update['num_extracted']} extracted, "
                       f"{update.get('num_pairs_scored', 0)} pairs scored, {update.get('num_pairs_matched', 0)} "
-                      "pairs matched"]
+                      f"pairs matched ({update.get('num_pairs_kept', 0)} earlier pairs kept, "
+                      f"{update.get('num_pairs_dropped', 0)} dropped)"]
     notes = time_notes(s)
     if notes:
         lines += [""] + [f"- {note}" for note in notes]

@@ -50,6 +50,8 @@ class RoundsRun:
     out_dir: Path
     selection_key: str
     progress: bool = True
+    #: earlier matches to take pairs from (`match.run`'s `reserve`)
+    reserve: Path | None = None
 
     @property
     def staged(self) -> Path:
@@ -59,7 +61,7 @@ class RoundsRun:
         """Match `pairs_path` beside the current database; returns the database holding the matches."""
         return match.run(self.conf.match, pairs_path, self.out_dir / extract.DB_NAME, self.out_dir,
                          features_path=self.ctx.features_path, features_backend=self.conf.extract.backend,
-                         executor=self.ctx.executor, progress=self.progress, beside=True)
+                         executor=self.ctx.executor, progress=self.progress, beside=True, reserve=self.reserve)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -88,13 +88,14 @@ def _run_stages(conf: PipelineConfig, images: ImageSet, images_root: Path, out_d
     if stop_after == "pairs":
         report.save()
         return report
-    source_rounds = _rounds_run(conf, images, features, out_dir, executor, progress)
+    extract_key = (records.read_record(out_dir, extract.STAGE) or {}).get("key", "")
+    reserve = incremental.earlier_matches(out_dir, extract_key)
+    source_rounds = _rounds_run(conf, images, features, out_dir, executor, progress, reserve)
     work = match_pairs(conf, pairs_path, features, out_dir, executor=executor, progress=progress, beside=True,
-                       overwrite=overwrite)
+                       overwrite=overwrite, reserve=reserve)
     staged = None
     if source_rounds is not None:
         work, staged = rounds.before_mapping(source_rounds, work)
-    extract_key = (records.read_record(out_dir, extract.STAGE) or {}).get("key", "")
     start = incremental.start_model(out_dir, extract_key) if conf.rounds.extend_model else None
     map_model(conf, images.root, out_dir, db_path=work, progress=progress, overwrite=overwrite,
               commit_round=(lambda: rounds.commit_staged(source_rounds, staged)) if staged else None,
@@ -115,13 +116,14 @@ def _run_stages(conf: PipelineConfig, images: ImageSet, images_root: Path, out_d
 
 
 def _rounds_run(conf: PipelineConfig, images: ImageSet, features: Path, out_dir: Path, executor: Executor,
-                progress: bool) -> rounds.RoundsRun | None:
+                progress: bool, reserve: Path | None = None) -> rounds.RoundsRun | None:
     """The pair source's rounds around mapping, ready to run (None when it has none)."""
     source = get_source(conf.pairs.method) if pairs_stage.pair_source_file(conf.pairs.method) is None else None
     if source is None or source.rounds is None:
         return None
     ctx = pairs_stage.pair_context(conf, images, features, out_dir, executor=executor, progress=progress)
-    return rounds.RoundsRun(source.rounds, ctx, conf, out_dir, pairs_stage.current_key(conf, out_dir), progress)
+    return rounds.RoundsRun(source.rounds, ctx, conf, out_dir, pairs_stage.current_key(conf, out_dir), progress,
+                            reserve)
 
 
 def _update_counts(out_dir: Path, extract_key: str) -> dict[str, int]:
@@ -133,18 +135,20 @@ def _update_counts(out_dir: Path, extract_key: str) -> dict[str, int]:
     selected = records.done_info(out_dir, pairs_stage.STAGE)
     scored = selected.get("num_candidates_scored", selected.get("num_candidates", 0))
     final = {tuple(sorted(p)) for p in read_pairs(out_dir / pairs_stage.PAIRS_NAME)}
-    return {"num_pairs_scored": scored, "num_pairs_kept": len(kept),
-            "num_pairs_matched": len(final - {tuple(sorted(p)) for p in kept})}
+    earlier = {tuple(sorted(p)) for p in kept}  # matched before the update
+    return {"num_pairs_scored": scored, "num_pairs_kept": len(final & earlier),
+            "num_pairs_dropped": len(earlier - final), "num_pairs_matched": len(final - earlier)}
 
 
 def match_pairs(conf: PipelineConfig, pairs_path: Path, features_path: Path, out_dir: Path, *,
                 executor: Executor | None = None, progress: bool = True, beside: bool = False,
-                overwrite: bool = False) -> Path:
+                overwrite: bool = False, reserve: Path | None = None) -> Path:
     """Stage `match` with this run's matcher; returns the database that holds the matches (with
-    `beside`, possibly a copy to `match.commit` once mapping succeeded)."""
+    `beside`, possibly a copy to `match.commit` once mapping succeeded; `reserve`: earlier matches
+    to take pairs from, see `match.run`)."""
     return match.run(conf.match, pairs_path, out_dir / extract.DB_NAME, out_dir, features_path=features_path,
                      features_backend=conf.extract.backend, executor=executor, progress=progress, beside=beside,
-                     overwrite=overwrite)
+                     overwrite=overwrite, reserve=reserve)
 
 
 def map_model(conf: PipelineConfig, images_root: Path, out_dir: Path, *, db_path: Path | None = None,

@@ -21,7 +21,7 @@ import numpy as np
 from ... import retrieval, scoring, selection
 from ...descriptors import top_k_cosine
 from ...io.pairs import Pair
-from ...io.scores import concat_scores, write_scores_csv
+from ...io.scores import PairScores, concat_scores, take_scores, write_scores_csv
 from .. import PairContext, PairResult
 from . import sequence
 from .budget import PairBudget
@@ -33,7 +33,9 @@ SCORES_NAME = "scores.csv"
 RESCUE_REASON = "low_parallax"
 
 
-def select(ctx: PairContext) -> PairResult:
+def select(ctx: PairContext, cached: PairScores | None = None) -> PairResult:
+    """SARA's pairs of `ctx.names`. `cached`: scores of earlier candidates (an incremental update's,
+    between images that did not change): a candidate found there is not scored again."""
     conf = ctx.conf
     timings: dict[str, float] = {}
     tic = time.perf_counter()
@@ -44,7 +46,7 @@ def select(ctx: PairContext) -> PairResult:
 
     tic = time.perf_counter()
     candidates: list[Pair] = [(names[i], names[j]) for i, j in edges]
-    scores = _score(ctx, candidates)
+    scores, num_scored = _score_or_reuse(ctx, candidates, cached)
     timings["scoring"] = time.perf_counter() - tic
 
     tic = time.perf_counter()
@@ -63,7 +65,8 @@ def select(ctx: PairContext) -> PairResult:
         logger.info("the selected graph has %d components: scoring %d more candidates from %d neighbours of "
                     "the views outside the largest one", int(labels.max()) + 1, len(new_edges), neighbors)
         new_candidates = [(names[i], names[j]) for i, j in new_edges]
-        scores = concat_scores(scores, _score(ctx, new_candidates))
+        more, num_more = _score_or_reuse(ctx, new_candidates, cached)
+        scores, num_scored = concat_scores(scores, more), num_scored + num_more
         edges, candidates = np.concatenate([edges, new_edges]), candidates + new_candidates
         widened += len(new_edges)
         timings["scoring"] += time.perf_counter() - tic
@@ -76,6 +79,7 @@ def select(ctx: PairContext) -> PairResult:
     labels = selection.connected_components(len(names), _selected_edges(edges, roles))
     info = {
         "num_candidates": len(candidates),
+        "num_candidates_scored": num_scored,
         "num_widened": widened,
         "num_accepted": int(scores.accepted.sum()),
         "rejected": _count(r for r in scores.reason if r),
@@ -106,6 +110,26 @@ def _score(ctx: PairContext, candidates: list[Pair]) -> scoring.PairScores:
     return scoring.score_pairs(candidates, ctx.features_path, ctx.db_path, conf.score, executor=ctx.executor,
                                shard_size=conf.execute.shard_size, work_dir=ctx.out_dir / ".sara",
                                progress=ctx.progress, seed=conf.seed)
+
+
+def _score_or_reuse(ctx: PairContext, candidates: list[Pair],
+                    cached: PairScores | None) -> tuple[PairScores, int]:
+    """The scores of `candidates` in their order, those of `cached` reused (a pair found there the
+    other way round gets its inverse rotation), the others scored; and how many were scored."""
+    if cached is None:
+        return _score(ctx, candidates), len(candidates)
+    row = {(a, b): k for k, (a, b) in enumerate(zip(cached.name0, cached.name1))}
+    todo = [(a, b) for a, b in candidates if (a, b) not in row and (b, a) not in row]
+    known = len(cached)
+    pool = concat_scores(cached, _score(ctx, todo)) if todo else cached
+    fresh = {pair: known + k for k, pair in enumerate(todo)}
+    order = [row.get((a, b), row.get((b, a), fresh.get((a, b)))) for a, b in candidates]
+    scores = take_scores(pool, order)
+    for k, (a, b) in enumerate(candidates):
+        if scores.name0[k] != a:  # stored as (b, a)
+            scores.name0[k], scores.name1[k] = a, b
+            scores.rotvec[k] = -scores.rotvec[k]
+    return scores, len(todo)
 
 
 def _choose(num_images: int, edges: np.ndarray, scores: scoring.PairScores, conf: Any):
