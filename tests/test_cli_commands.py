@@ -215,3 +215,28 @@ def test_the_error_mapping():
         if bug != message.startswith("internal error:"):
             wrong[case] = (got, message)
     assert not wrong, wrong
+
+
+def test_map_with_overwrite_maps_again(finished_run, run_cli):
+    """`sara map OUT --overwrite` maps again; without it a model that is up to date is kept (the
+    option was accepted and ignored: the model was kept either way)."""
+    kept = run_cli("map", finished_run, "-v")
+    assert_ok(kept)
+    assert "model up to date, skipping" in kept.err
+    again = run_cli("map", finished_run, "--overwrite", "-v")
+    assert_ok(again)
+    assert "model up to date, skipping" not in again.err
+    assert len(registered(finished_run)) == 10
+
+
+def test_match_with_overwrite_matches_again(finished_run, run_cli):
+    """`sara match OUT --overwrite` matches every pair again (the option was accepted and ignored)."""
+    from sara.io import records
+
+    kept = run_cli("match", finished_run, "-q")
+    assert_ok(kept)
+    before = records.done_info(finished_run, "match")
+    again = run_cli("match", finished_run, "--overwrite", "-q")
+    assert_ok(again)
+    after = records.done_info(finished_run, "match")
+    assert after["num_pairs"] == before["num_pairs"] and after["time_s"] != before["time_s"]

@@ -89,7 +89,7 @@ def cmd_match(args: argparse.Namespace) -> None:
     from ..pipeline import match_only
 
     info = match_only(config_from_args(args), args.out, args.pairs, progress=not args.quiet,
-                      verbose_colmap=args.verbose)
+                      verbose_colmap=args.verbose, overwrite=args.overwrite)
     print(f"matched {info['num_pairs']} pairs in {info['time_s']:.1f} s: {info['num_verified_pairs']} verified")
 
 
@@ -97,7 +97,7 @@ def cmd_map(args: argparse.Namespace) -> None:
     from ..pipeline import map_only
 
     info = map_only(config_from_args(args), args.out, args.images, progress=not args.quiet,
-                    verbose_colmap=args.verbose)
+                    verbose_colmap=args.verbose, overwrite=args.overwrite)
     print(f"{info['num_components']} model(s) with {info['component_sizes']} images -> {args.out / 'sparse'}")
 
 

@@ -48,8 +48,9 @@ def _require_finished(out_dir: Path, stage: str, command: str) -> dict[str, Any]
 
 
 def match_only(conf: PipelineConfig, out_dir: Path, pairs_path: Path | None = None, *, progress: bool = True,
-               verbose_colmap: bool = False) -> dict[str, Any]:
-    """`sara match OUT`: match a pairs file (default OUT/pairs.txt) into OUT's database."""
+               verbose_colmap: bool = False, overwrite: bool = False) -> dict[str, Any]:
+    """`sara match OUT`: match a pairs file (default OUT/pairs.txt) into OUT's database (with
+    `overwrite`, every pair matched again)."""
     out_dir = Path(out_dir)
     db = _require_database(out_dir, f"run `sara extract IMAGES {out_dir}` first")
     pairs_path = Path(pairs_path or out_dir / PAIRS_NAME)
@@ -69,14 +70,15 @@ def match_only(conf: PipelineConfig, out_dir: Path, pairs_path: Path | None = No
             pairs_stage.pairs_intact(out_dir, selected.get("key", ""))
         colmap.send_log_to(out_dir / "logs", verbose=verbose_colmap)
         features = out_dir / features_file_name(conf.extract)
-        work = match_pairs(conf, pairs_path, features, out_dir, progress=progress, beside=True)
+        work = match_pairs(conf, pairs_path, features, out_dir, progress=progress, beside=True, overwrite=overwrite)
         match.commit(work, db, out_dir)
     return records.done_info(out_dir, match.STAGE)
 
 
 def map_only(conf: PipelineConfig, out_dir: Path, images_root: Path | None = None, *, progress: bool = True,
-             verbose_colmap: bool = False) -> dict[str, Any]:
-    """`sara map OUT`: map OUT's database into OUT/sparse (images: the folder recorded in run.json).
+             verbose_colmap: bool = False, overwrite: bool = False) -> dict[str, Any]:
+    """`sara map OUT`: map OUT's database into OUT/sparse (images: the folder recorded in run.json;
+    with `overwrite`, mapped again even when the model is up to date).
 
     Refuses when the match stage did not finish, or when the database no longer holds the matches
     it recorded: an unfinished match is never mapped as if it were complete.
@@ -101,7 +103,7 @@ def map_only(conf: PipelineConfig, out_dir: Path, images_root: Path | None = Non
             raise IncompleteStageError(f"{db} no longer holds the matches of the last match stage (changed, or a "
                                        f"run stopped before it finished): run `sara match {out_dir}` first")
         colmap.send_log_to(out_dir / "logs", verbose=verbose_colmap)
-        map_model(conf, images_root, out_dir, progress=progress)
+        map_model(conf, images_root, out_dir, progress=progress, overwrite=overwrite)
     return records.done_info(out_dir, mapping.STAGE)
 
 
