@@ -19,7 +19,7 @@ def synthetic_scene(tmp_path_factory):
 
 
 @pytest.fixture(scope="session")
-def small_scene(tmp_path_factory):
+def five_view_scene(tmp_path_factory):
     """The synthetic scene with 5 views (10 pairs, each verified): (images folder, gt folder), for a
     test that extracts several times and needs a scene, not this one."""
     from sara.synthetic import make_scene

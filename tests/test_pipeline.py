@@ -12,8 +12,8 @@ from sara.io import read_json
 from sara.pipeline import run, share_features
 
 
-def test_synthetic_end_to_end(tmp_path: Path, small_scene):
-    images, gt = small_scene  # 5 views, every stage from the images on
+def test_synthetic_end_to_end(tmp_path: Path, five_view_scene):
+    images, gt = five_view_scene  # 5 views, every stage from the images on
     conf = make_config("sift-offline", {"pairs.method": "exhaustive"})
     report = run(conf, images, tmp_path / "out", gt_dir=gt, progress=False)
     m = report.metrics
