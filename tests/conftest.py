@@ -19,7 +19,7 @@ def synthetic_scene(tmp_path_factory):
 
 
 @pytest.fixture(scope="session")
-def small_scene(tmp_path_factory):
+def five_view_scene(tmp_path_factory):
     """The synthetic scene with 5 views (10 pairs, each verified): (images folder, gt folder), for a
     test that extracts several times and needs a scene, not this one."""
     from sara.synthetic import make_scene
@@ -28,14 +28,17 @@ def small_scene(tmp_path_factory):
 
 
 @pytest.fixture(scope="session")
-def finished_run_template(tmp_path_factory, synthetic_scene) -> Path:
+def finished_run_template(tmp_path_factory, synthetic_scene, scene_features) -> Path:
     """One finished `sara run --gt` of the synthetic scene for the whole session, made through the
-    command line as a user makes it (report.html included). Read it, never write into it: a test
-    that changes a run takes `finished_run`, its own copy."""
+    command line as a user makes it (report.html included), in a folder that starts with the
+    scene's features (`scene_features`, as a bench method's does: one extraction for the session).
+    Read it, never write into it: a test that changes a run takes `finished_run`, its own copy."""
     from harness import run_redirected
+    from sara.pipeline import share_features
 
     images, gt = synthetic_scene
     out = tmp_path_factory.mktemp("finished") / "out"
+    share_features(scene_features, out)
     result = run_redirected("run", images, out, "-q", "--gt", gt)
     assert result.code == 0, result.err
     return out

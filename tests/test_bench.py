@@ -172,8 +172,8 @@ def test_a_renamed_scene_holds_the_same_images_and_poses_under_new_names(synthet
         new_names(originals, 0)
 
 
-def test_bench_over_name_orders_sums_each_method_up_over_the_namings(small_scene, tmp_path: Path):
-    images, _ = small_scene  # 5 views: two namings, two extractions
+def test_bench_over_name_orders_sums_each_method_up_over_the_namings(five_view_scene, tmp_path: Path):
+    images, _ = five_view_scene  # 5 views: two namings, two extractions
     out = tmp_path / "bench"
     result = bench.run_bench([images.parent], out, make_config(), methods=["exhaustive"], progress=False,
                              plot=False, name_orders=1)

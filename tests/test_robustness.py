@@ -85,14 +85,14 @@ def test_messy_folder_end_to_end(tmp_path: Path, messy_folder: Path):
     assert "view05_duplicate.png" in pairs and "view 00 é.png" in pairs
 
 
-def test_two_unrelated_scenes_map_apart(tmp_path: Path, small_scene):
+def test_two_unrelated_scenes_map_apart(tmp_path: Path, five_view_scene):
     from sara.synthetic import make_scene
 
     # two scenes of 5 views (each maps whole on its own): 10 images to extract, not 16
     other, _ = make_scene(tmp_path / "other", num_images=5, seed=7)
     root = tmp_path / "both"
     root.mkdir()
-    for p in _scene_images(small_scene):
+    for p in _scene_images(five_view_scene):
         shutil.copyfile(p, root / f"a_{p.name}")
     for p in sorted(other.iterdir()):
         # mirrored: pycolmap renders the same patch for the same point id in every scene, which

@@ -4,8 +4,6 @@ vanished or cannot be decoded, naming why."""
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import pytest
 from PIL import Image
