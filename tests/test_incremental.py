@@ -103,7 +103,7 @@ def test_added_images_are_extracted_paired_and_matched_alone(scene, copy_of_firs
     assert any(set(pair) & set(new) for pair in new_pairs)
     # the whole graph selected again: the selection a run from scratch of the 8 views makes
     scratch = out.parent / "scratch"
-    assert_ok(sara_process("pairs", images, scratch, "-q"))
+    assert_ok(run_redirected("pairs", images, scratch, "-q"))
     assert _selected(out) == _selected(scratch) == _pairs(scratch)
     # the database holds the geometries of exactly the pairs matched (earlier pairs no longer selected left it)
     assert _geometry_pairs(out) == final
