@@ -224,3 +224,34 @@ def test_update_reuses_the_scores_of_unchanged_pairs_and_scores_the_others(monke
     assert got.overlap.tolist() == [0.2, 0.9, 0.1]
     assert got.rotvec.tolist() == [[0, -1, 0], [1, 0, 0], [0, 0, 1]]
     assert cached.rotvec.tolist() == [[0, 0, 1], [0, 1, 0]]  # the cache itself unchanged
+
+
+def test_pairs_held_by_the_earlier_matches_are_copied_not_matched(copy_of_first):
+    """An update's `reserve` (its earlier matches): a selected pair the reserve holds is copied with
+    its matches and geometry; only the pairs it lacks are matched."""
+    from sara import match
+    from sara.config import make_config
+    from sara.io.pairs import write_pairs
+
+    _, out = copy_of_first
+    db = out / "database.db"
+    reserve = out.parent / "reserve.db"
+    colmap.copy_database(db, reserve)
+    before = {(i, j): n for i, j, n in colmap.verified_image_pairs(reserve)}
+    ids = colmap.image_ids(db)
+    names = {i: n for n, i in ids.items()}
+    pairs = sorted(_pairs(out))
+    kept = tuple(sorted((ids[pairs[0][0]], ids[pairs[0][1]])))
+    colmap.delete_pairs_except(db, {kept})  # as after an update's first match: one earlier pair left
+    unmatched = sorted({tuple(sorted((a, b))) for a in names.values() for b in names.values() if a != b}
+                       - set(pairs))
+    wanted = pairs + unmatched[:1]  # the earlier pairs and one pair never matched
+    pairs_path = out.parent / "wanted.txt"
+    write_pairs(pairs_path, wanted)
+    conf = make_config("sift-offline").match
+    work = match.run(conf, pairs_path, db, out, features_path=out / "features-sift.h5", progress=False,
+                     reserve=reserve)
+    info = json.loads((out / ".sara" / "match.json").read_text())["info"]
+    assert info["num_matched_now"] == 1  # the one pair the reserve lacks
+    after = {(i, j): n for i, j, n in colmap.verified_image_pairs(work)}
+    assert {k: after[k] for k in before} == before  # copied as they were, matches and geometry
