@@ -114,6 +114,21 @@ def test_added_images_are_extracted_paired_and_matched_alone(scene, copy_of_firs
     assert json.loads((out / "run.json").read_text())["stages"]["update"] == update
 
 
+def test_an_update_made_stage_by_stage_continues_the_model_and_finishes(scene, copy_of_first, run_cli):
+    """`sara extract`, `sara pairs`, `sara match`, `sara map` on a changed folder do what `sara run`
+    does: earlier matches are copied, the model is continued, the update is closed."""
+    images, out = copy_of_first
+    before = _pairs(out)
+    _folder(scene, images, sorted(os.listdir(scene))[NUM_FIRST:])
+    for command in (("extract", images, out), ("pairs", images, out), ("match", out), ("map", out)):
+        assert_ok(run_cli(*command, "-q"))
+    new_pairs = _pairs(out) - before
+    assert _record(out, "match")["info"]["num_matched_now"] == len(new_pairs) < len(_pairs(out))
+    assert _record(out, "map")["info"]["continued"] is True
+    assert sorted(registered(out)) == sorted(os.listdir(images))
+    assert not (out / ".sara" / "update").exists()
+
+
 def test_removed_images_leave_database_features_pairs_and_model(copy_of_first, run_cli):
     images, out = copy_of_first
     gone = sorted(os.listdir(images))[2:4]

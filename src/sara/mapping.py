@@ -74,7 +74,8 @@ def run(conf: MapConfig, db_path: Path, images_root: Path, out_dir: Path, *, see
         commit()
     swap_in(tmp, sparse)
     info = {"time_s": elapsed, "num_components": len(sizes), "component_sizes": sizes,
-            "num_registered": sizes[0], "num_images": num_images, "forward_start": recs.forward_start}
+            "num_registered": sizes[0], "num_images": num_images, "forward_start": recs.forward_start,
+            "continued": input_model is not None and conf.mapper == "incremental"}
     records.mark_done(out_dir, STAGE, key, info, outputs={"sparse": model_digest(sparse)})
     if len(sizes) > 1:
         logger.warning("map: the scene split into %d models of %s images", len(sizes), sizes)

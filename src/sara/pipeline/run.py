@@ -103,7 +103,7 @@ def _run_stages(conf: PipelineConfig, images: ImageSet, images_root: Path, out_d
     if source_rounds is not None:
         rounds.after_mapping(source_rounds)
     collect_stages(report, pairs_stage.current_key(conf, out_dir))
-    update = incremental.finish(out_dir, extract_key, _update_counts(out_dir, extract_key))
+    update = finish_update(out_dir, extract_key)
     if update is not None:
         report.stages["update"] = update
     if gt_dir is not None:
@@ -124,6 +124,11 @@ def _rounds_run(conf: PipelineConfig, images: ImageSet, features: Path, out_dir:
     ctx = pairs_stage.pair_context(conf, images, features, out_dir, executor=executor, progress=progress)
     return rounds.RoundsRun(source.rounds, ctx, conf, out_dir, pairs_stage.current_key(conf, out_dir), progress,
                             reserve)
+
+
+def finish_update(out_dir: Path, extract_key: str) -> dict[str, Any] | None:
+    """Close a pending incremental update once its model is in place; its counts (None: no update)."""
+    return incremental.finish(out_dir, extract_key, _update_counts(out_dir, extract_key))
 
 
 def _update_counts(out_dir: Path, extract_key: str) -> dict[str, int]:

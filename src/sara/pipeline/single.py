@@ -8,13 +8,13 @@ import shutil
 from pathlib import Path
 from typing import Any
 
-from .. import colmap, extract, mapping, match
+from .. import colmap, extract, incremental, mapping, match
 from ..config import PipelineConfig
 from ..features import features_file_name
 from ..io import DamagedOutputError, IncompleteStageError, OutputLock, link_or_copy, read_json, records
 from ..io.images import folder_mismatch
 from . import pairs_stage
-from .run import map_model, match_pairs, preflight, recover
+from .run import finish_update, map_model, match_pairs, preflight, recover
 
 PAIRS_NAME = pairs_stage.PAIRS_NAME
 PAIRS_STAGE = pairs_stage.STAGE
@@ -70,7 +70,10 @@ def match_only(conf: PipelineConfig, out_dir: Path, pairs_path: Path | None = No
             pairs_stage.pairs_intact(out_dir, selected.get("key", ""))
         colmap.send_log_to(out_dir / "logs", verbose=verbose_colmap)
         features = out_dir / features_file_name(conf.extract)
-        work = match_pairs(conf, pairs_path, features, out_dir, progress=progress, beside=True, overwrite=overwrite)
+        # a pending update (`sara extract` on a changed folder): pairs matched before are copied
+        reserve = None if overwrite else incremental.earlier_matches(out_dir, record.get("key", ""))
+        work = match_pairs(conf, pairs_path, features, out_dir, progress=progress, beside=True, overwrite=overwrite,
+                           reserve=reserve)
         match.commit(work, db, out_dir)
     return records.done_info(out_dir, match.STAGE)
 
@@ -103,7 +106,11 @@ def map_only(conf: PipelineConfig, out_dir: Path, images_root: Path | None = Non
             raise IncompleteStageError(f"{db} no longer holds the matches of the last match stage (changed, or a "
                                        f"run stopped before it finished): run `sara match {out_dir}` first")
         colmap.send_log_to(out_dir / "logs", verbose=verbose_colmap)
-        map_model(conf, images_root, out_dir, progress=progress, overwrite=overwrite)
+        # a pending update continues the earlier model, as `sara run` does, and is closed
+        extract_key = (records.read_record(out_dir, extract.STAGE) or {}).get("key", "")
+        start = incremental.start_model(out_dir, extract_key) if conf.rounds.extend_model and not overwrite else None
+        map_model(conf, images_root, out_dir, progress=progress, overwrite=overwrite, input_model=start)
+        finish_update(out_dir, extract_key)
     return records.done_info(out_dir, mapping.STAGE)
 
 
