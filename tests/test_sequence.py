@@ -95,6 +95,37 @@ def test_the_mapper_starts_from_forward_motion_when_nothing_else_starts(monkeypa
     assert calls == [False, True] and recs.forward_start and recs.largest == 7
 
 
+@pytest.mark.parametrize("first, joined, forward, expected", [
+    (2, 51, 51, [False, True, 51]),   # a start that could not grow (kitti-seq1, seed 0): mapped again, kept
+    (5, 51, 3, [False, True, 5]),     # mapped again, but the retry holds fewer views: the first kept
+    (30, 51, 51, [False, 30]),        # more than half the joined views: no retry
+])
+def test_a_first_model_far_smaller_than_the_joined_views_is_mapped_again_from_a_forward_pair(
+        monkeypatch, tmp_path: Path, first, joined, forward, expected):
+    from sara import colmap, mapping
+    from sara.colmap.sfm import MappedModels
+
+    calls: list = []
+
+    class Rec:
+        def __init__(self, n: int):
+            self.n = n
+
+        def num_reg_images(self) -> int:
+            return self.n
+
+    def fake_mapping(*args, forward_start=False, **kwargs):
+        calls.append(forward_start)
+        return MappedModels({0: Rec(forward if forward_start else first)})
+
+    monkeypatch.setattr(colmap, "incremental_mapping", fake_mapping)
+    monkeypatch.setattr(colmap, "database_images", lambda db: {})
+    monkeypatch.setattr(colmap, "verified_graph", lambda db, min_inliers: (100, joined, [joined], 200))
+    recs, _, _ = mapping._map(make_config("sift-offline", {}).map, tmp_path / "db", tmp_path, tmp_path, 0, False)
+    assert calls + [recs.largest] == expected
+    assert recs.forward_start == (recs.largest > first)
+
+
 def test_low_texture_is_said_before_matching_with_the_backend_to_try():
     from sara.pipeline import advice
 
