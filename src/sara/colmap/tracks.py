@@ -17,7 +17,6 @@ from pathlib import Path
 
 import numpy as np
 import pycolmap
-from scipy.spatial import cKDTree
 
 from ..io.h5 import FeatureCache
 
@@ -315,6 +314,8 @@ def _extend_view(rec: pycolmap.Reconstruction, iid: int, feats, point_ids: np.nd
     if len(free) == 0 or not near.any():
         return 0
     keypoints = np.asarray(feats.keypoints, dtype=np.float64)[free] + 0.5  # hloc -> COLMAP pixel convention
+    from scipy.spatial import cKDTree  # here: importing the pipeline stays light for `sara extract`
+
     dist, nn = cKDTree(keypoints).query(uv[near], k=2, distance_upper_bound=ext.radius_px)
     cand_rows = np.nonzero(near)[0]
     best_d = _descriptor_distances(cand_rows, dist, nn, free, rep, obs, o_desc, _unit(feats.descriptors), len(idx))

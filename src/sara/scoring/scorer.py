@@ -42,7 +42,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 from threadpoolctl import threadpool_limits
 from tqdm import tqdm
 
@@ -211,6 +210,8 @@ def _rotation_vector(R: np.ndarray | None) -> tuple[float, float, float]:
     """(3, 3) rotation -> axis times angle (radians); NaN without a rotation."""
     if R is None:
         return (math.nan, math.nan, math.nan)
+    from scipy.spatial.transform import Rotation  # here: `sara extract` imports this module, not scipy
+
     x, y, z = Rotation.from_matrix(R).as_rotvec()
     return (float(x), float(y), float(z))
 
