@@ -127,6 +127,14 @@ def test_importing_the_cli_loads_no_heavy_package() -> None:
     assert out.strip() == "[]"
 
 
+def test_the_pipeline_imports_no_scipy() -> None:
+    """`sara extract` imports the pipeline and is measured against plain pycolmap (issue 31): scipy
+    (about 0.7 s) is imported where a stage uses it, not on import."""
+    code = "import sys, sara.cli.main, sara.cli.commands, sara.pipeline; print('scipy' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "False"
+
+
 #: floors inside a package: a module imports its siblings on lower floors only
 SUB_FLOORS = {
     "pipeline": {"advice": 0, "rounds": 0, "pairs_stage": 1, "record": 2, "run": 3, "single": 4, "__init__": 5},
