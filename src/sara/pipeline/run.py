@@ -37,7 +37,7 @@ def run(conf: PipelineConfig, images_root: Path, out_dir: Path, *, gt_dir: Path 
     if stop_after not in (None, "extract", "pairs"):
         raise ValueError(f"stop_after must be extract or pairs, not {stop_after!r}")
     out_dir, images_root = Path(out_dir), Path(images_root)
-    preflight(conf)  # a bad option or --pairs fails before any work
+    preflight(conf, extract_only=stop_after == "extract")  # a bad option or --pairs fails before any work
     if gt_dir is not None:
         _check_ground_truth(Path(gt_dir), images_root)
     images = scan_images(images_root, recursive=conf.images.recursive, progress=progress, out_dir=out_dir)
@@ -193,16 +193,21 @@ def recover(out_dir: Path) -> None:
     rounds.recover(out_dir)
 
 
-def preflight(conf: PipelineConfig) -> None:
+def preflight(conf: PipelineConfig, *, extract_only: bool = False) -> None:
     """Check every name the run will look up (backends, descriptor, pair source), before any work.
 
     Values in range are checked when the config is made; this checks the names that only the
     registries know, and finds every weight file the run will load (file-system look-ups only):
-    a missing one fails in well under a second, not after the stages before it.
+    a missing one fails in well under a second, not after the stages before it. `extract_only`
+    (`sara extract`): the feature backend alone, without importing the pair sources and matchers.
     """
-    pairs_stage.pair_source_file(conf.pairs.method)
     if conf.extract.backend not in FEATURE_BACKENDS:
         raise ValueError(f"extract.backend must be one of {', '.join(FEATURE_BACKENDS)}, got {conf.extract.backend!r}")
+    if extract_only:
+        for key, explicit in _weights_needed(FEATURE_BACKENDS.get(conf.extract.backend), conf.extract):
+            weights.find(key, explicit)
+        return
+    pairs_stage.pair_source_file(conf.pairs.method)
     matcher = resolve_name(conf.match, conf.extract.backend)
     if matcher not in MATCHER_BACKENDS:
         raise ValueError(f"match.backend must be auto or one of {', '.join(MATCHER_BACKENDS)}, got {matcher!r}")
