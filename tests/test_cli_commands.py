@@ -240,3 +240,26 @@ def test_match_with_overwrite_matches_again(finished_run, run_cli):
     assert_ok(again)
     after = records.done_info(finished_run, "match")
     assert after["num_pairs"] == before["num_pairs"] and after["time_s"] != before["time_s"]
+
+
+def test_colmaps_log_reaches_its_file_at_once(tmp_path):
+    """COLMAP's log lines are written as they come, not buffered for up to 30 s by glog: the log
+    that a failure names holds its last lines, and a second run's log file in the same process is
+    not left empty (a fresh process: glog reads the setting when pycolmap loads)."""
+    import os
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, pathlib\n"
+        "from sara import colmap\n"
+        "import pycolmap\n"
+        "first, second = pathlib.Path(sys.argv[1]), pathlib.Path(sys.argv[2])\n"
+        "colmap.send_log_to(first); pycolmap.logging.info('first message')\n"
+        "colmap.send_log_to(second); pycolmap.logging.info('second message')\n"
+        "print(sum(f.read_text().count('second message') for f in second.iterdir()))\n"
+    )
+    env = {k: v for k, v in os.environ.items() if k != "GLOG_logbuflevel"}  # as a user's shell has it
+    out = subprocess.run([sys.executable, "-c", code, str(tmp_path / "a"), str(tmp_path / "b")],
+                         capture_output=True, text=True, check=True, env=env).stdout
+    assert out.strip() == "1"

@@ -99,7 +99,7 @@ def test_a_continued_model_is_mapped_anew_only_when_it_gained_no_view(tmp_path: 
 
     maps = []
 
-    def fake_map(conf, db_path, images_root, tmp, seed, progress, input_model=None):
+    def fake_map(conf, db_path, images_root, tmp, seed, progress, input_model=None, **kwargs):
         maps.append("continued" if input_model is not None else "scratch")
         return mapping.colmap.MappedModels({0: _Model(continued if input_model is not None else 12)}), 20, 0.1
 
