@@ -148,9 +148,15 @@ def child_main(world_dir: Path, run_dir: Path, method: str, overrides: dict[str,
     out = {"stages": clock.stages, "pairs_info": records.done_info(run_dir, "pairs"),
            "match_info": records.done_info(run_dir, "match"), "first_map_info": first_map,
            "map_info": records.done_info(run_dir, "map"),
-           "rounds": rounds.ledger(run_dir, current_key(conf, run_dir)) if rr is not None else {},
+           "rounds": _ledger_summary(rounds.ledger(run_dir, current_key(conf, run_dir))) if rr is not None else {},
            "num_pairs_matched": sum(1 for line in (run_dir / "pairs.txt").open() if line.strip())}
     (run_dir / "child.json").write_text(json.dumps(out, default=str))
+
+
+def _ledger_summary(ledger: dict[str, Any]) -> dict[str, Any]:
+    """The rounds' ledger with each role's pairs counted, not listed."""
+    added = ledger.pop("added", {})
+    return {**ledger, "added_per_role": {role: len(pairs) for role, pairs in added.items()}}
 
 
 # ---------------------------------------------------------------------------------------------
@@ -275,7 +281,7 @@ def done_keys(work: Path) -> set[tuple[int, str]]:
     path = work / RESULTS
     if not path.exists():
         return set()
-    return {(r["N"], r["method"]) for r in map(json.loads, path.read_text().splitlines()) if r.strip()}
+    return {(r["N"], r["method"]) for r in map(json.loads, filter(str.strip, path.read_text().splitlines()))}
 
 
 def bench(args: argparse.Namespace) -> None:
@@ -322,9 +328,10 @@ def summary_line(row: dict[str, Any]) -> str:
     if "stopped" in row or row.get("returncode"):
         where = row.get("progress", {}).get("stopped_in")
         return f"STOPPED ({row.get('stopped', {}).get('reason', 'error')}) in {where} after {row['wall_s']:.0f} s"
+    auc = ev.get("auc", {})
     return (f"{row.get('num_pairs_matched')} pairs, " + ", ".join(f"{k} {_f(v)} s" for k, v in t.items())
             + f", {row['peak_rss_gib']:.2f} GiB, registered {ev.get('num_registered')}/{row['N']}"
-            + f" in {ev.get('num_components')} models, AUC@1/5 {ev.get('auc', {}).get('1')}/{ev.get('auc', {}).get('5')}")
+            + f" in {ev.get('num_components')} models, AUC@1/5 {_f(auc.get('1'), 4)}/{_f(auc.get('5'), 4)}")
 
 
 def table(rows: list[dict[str, Any]]) -> str:
