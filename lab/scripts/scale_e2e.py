@@ -367,7 +367,8 @@ def plot(rows: list[dict[str, Any]], path: Path) -> None:
             pts = [(n, s) for n, s in pts if s]
             if pts:
                 ax.plot(*zip(*pts), marker="o", label=method)
-        ax.set(xscale="log", yscale="log", xlabel="images N", title=f"{stage} (wall s)")
+        title = f"{stage} (wall s)" + (", sara: with its rounds" if stage == "map" else "")
+        ax.set(xscale="log", yscale="log", xlabel="images N", title=title)
         ax.grid(True, which="both", alpha=0.3)
     axes[0].set_ylabel("seconds")
     axes[-1].legend(fontsize=8)
