@@ -336,8 +336,8 @@ def summary_line(row: dict[str, Any]) -> str:
 
 def table(rows: list[dict[str, Any]]) -> str:
     head = ("| N | method | pairs matched | pairs s | match s | map s | rounds s | total s | CPU s | peak GiB "
-            "| registered / models | AUC@1 | AUC@5 | load |")
-    lines = [head, "|---:|---|" + "---:|" * 12]
+            "| registered / models | AUC@1 | AUC@5 | rel. rot. median ° | position error median % | load |")
+    lines = [head, "|---:|---|" + "---:|" * 14]
     for r in sorted(rows, key=lambda r: (r["N"], list(METHODS).index(r["method"]))):
         t, ev = stage_times(r), r.get("eval", {})
         auc = ev.get("auc", {})
@@ -349,6 +349,7 @@ def table(rows: list[dict[str, Any]]) -> str:
         lines.append(f"| {r['N']:,} | {r['method']} | {_f(r.get('num_pairs_matched'), 0)} | {_f(t['pairs'])} "
                      f"| {_f(t['match'])} | {_f(t['map'])} | {_f(t['rounds'])} | {total} | {_f(r['cpu_s'], 0)} "
                      f"| {peak:.2f} | {reg} | {_f(auc.get('1'), 4)} | {_f(auc.get('5'), 4)} "
+                     f"| {_f(ev.get('rel_rotation_error_median_deg'), 2)} | {_f(ev.get('position_error_median_pct'))} "
                      f"| {r['load_mean']:.1f} |")
     return "\n".join(lines) + "\n"
 
