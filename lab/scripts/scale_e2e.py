@@ -55,6 +55,7 @@ METHODS: dict[str, dict[str, str]] = {
     "retrieval": {"pairs.method": "retrieval"},
     "vocab_tree": {"pairs.method": "vocab_tree"},
     "exhaustive": {"pairs.method": "exhaustive"},
+    "retrieval-global": {"pairs.method": "retrieval", "map.mapper": "global"},  # is the global mapper at fault?
 }
 
 
