@@ -17,9 +17,9 @@ true poses by `sara evaluate` (its AUC over all N (N - 1) / 2 pairs). Each (N, m
 one JSON line to WORK/results.jsonl and is skipped when already there (a stopped bench resumes);
 a run past --timeout-min is killed and recorded as stopped, with the stages it had finished.
 
-    python lab/scripts/scale_e2e.py --sizes 200,1000 --out /work/scale-e2e
-    python lab/scripts/scale_e2e.py --sizes 200 --methods sara,exhaustive --out /work/scale-e2e
-    python lab/scripts/scale_e2e.py --out /work/scale-e2e --report-only   # WORK/scale_e2e.{md,png}
+    python lab/scripts/scale_e2e.py --sizes 200,1000 --out WORK
+    python lab/scripts/scale_e2e.py --sizes 200 --methods sara,exhaustive --out WORK
+    python lab/scripts/scale_e2e.py --out WORK --report-only   # WORK/scale_e2e.{md,png}
 
 Methods: sara (incremental mapper, its rounds), sara-global (sara's pairs, COLMAP's global
 mapper), sequential (overlap 10, loop detection: every 10th image with its 5 nearest by VLAD),
