@@ -14,21 +14,26 @@ from sara.pairs.sara.field_of_view import known_field_of_view, resolve_tree_over
 from sara.scoring import focal
 
 
+def _skew(v: np.ndarray) -> np.ndarray:
+    return np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+
+
+def _fundamental(f: float, width: int, height: int, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """F = K^-T [t]x R K^-1, principal point at the image centre."""
+    K_inv = np.linalg.inv(np.array([[f, 0, width / 2], [0, f, height / 2], [0, 0, 1.0]]))
+    return K_inv.T @ _skew(t) @ R @ K_inv
+
+
 def _fundamentals(f: float, width: int, height: int, num: int, seed: int = 0) -> list[np.ndarray]:
-    """F = K^-T [t]x R K^-1 of random, general relative poses (optical axes not meeting)."""
+    """F of random, general relative poses (optical axes not meeting)."""
     rng = np.random.default_rng(seed)
-    K = np.array([[f, 0, width / 2], [0, f, height / 2], [0, 0, 1.0]])
-    K_inv = np.linalg.inv(K)
     out = []
     for _ in range(num):
         axis = rng.normal(size=3)
         angle = np.radians(rng.uniform(3, 15))
-        k = axis / np.linalg.norm(axis)
-        kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+        kx = _skew(axis / np.linalg.norm(axis))
         R = np.eye(3) + np.sin(angle) * kx + (1 - np.cos(angle)) * kx @ kx
-        t = rng.normal(size=3)
-        tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
-        out.append(K_inv.T @ tx @ R @ K_inv)
+        out.append(_fundamental(f, width, height, R, rng.normal(size=3)))
     return out
 
 
@@ -229,15 +234,11 @@ def test_an_exif_focal_length_tells_the_field_of_view(tmp_path: Path):
 def _forward_fundamentals(f: float, width: int, height: int, num: int, seed: int = 0) -> list[np.ndarray]:
     """F of a camera driving ahead: translation along the optical axis, a yaw of at most 1 degree."""
     rng = np.random.default_rng(seed)
-    K = np.array([[f, 0, width / 2], [0, f, height / 2], [0, 0, 1.0]])
-    K_inv = np.linalg.inv(K)
     out = []
     for _ in range(num):
         yaw = np.radians(rng.uniform(-1, 1))
         R = np.array([[np.cos(yaw), 0, np.sin(yaw)], [0, 1, 0], [-np.sin(yaw), 0, np.cos(yaw)]])
-        t = np.array([rng.normal(0, 0.02), rng.normal(0, 0.01), 1.0])
-        tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
-        out.append(K_inv.T @ tx @ R @ K_inv)
+        out.append(_fundamental(f, width, height, R, np.array([rng.normal(0, 0.02), rng.normal(0, 0.01), 1.0])))
     return out
 
 

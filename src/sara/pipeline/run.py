@@ -203,10 +203,16 @@ def preflight(conf: PipelineConfig, *, extract_only: bool = False) -> None:
     """
     if conf.extract.backend not in FEATURE_BACKENDS:
         raise ValueError(f"extract.backend must be one of {', '.join(FEATURE_BACKENDS)}, got {conf.extract.backend!r}")
-    if extract_only:
-        for key, explicit in _weights_needed(FEATURE_BACKENDS.get(conf.extract.backend), conf.extract):
-            weights.find(key, explicit)
-        return
+    needed = list(_weights_needed(FEATURE_BACKENDS.get(conf.extract.backend), conf.extract))
+    if not extract_only:
+        needed += _later_stages_checked(conf)
+    for key, explicit in needed:
+        weights.find(key, explicit)
+
+
+def _later_stages_checked(conf: PipelineConfig) -> list[tuple[str, str]]:
+    """Check the names the stages after extraction look up (pair source, matcher, descriptor);
+    returns the weights they need."""
     pairs_stage.pair_source_file(conf.pairs.method)
     matcher = resolve_name(conf.match, conf.extract.backend)
     if matcher not in MATCHER_BACKENDS:
@@ -215,12 +221,10 @@ def preflight(conf: PipelineConfig, *, extract_only: bool = False) -> None:
     if uses_retrieval and conf.retrieval.descriptor not in DESCRIPTORS:
         raise ValueError(f"retrieval.descriptor must be one of {', '.join(DESCRIPTORS)}, "
                          f"got {conf.retrieval.descriptor!r}")
-    needed = list(_weights_needed(FEATURE_BACKENDS.get(conf.extract.backend), conf.extract))
-    needed += _weights_needed(MATCHER_BACKENDS.get(matcher), conf.match, conf.extract.backend)
+    needed = _weights_needed(MATCHER_BACKENDS.get(matcher), conf.match, conf.extract.backend)
     if uses_retrieval:
         needed += _weights_needed(DESCRIPTORS.get(conf.retrieval.descriptor), conf.retrieval)
-    for key, explicit in needed:
-        weights.find(key, explicit)
+    return needed
 
 
 def _weights_needed(backend: Any, *args: Any) -> list[tuple[str, str]]:
