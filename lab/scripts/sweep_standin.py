@@ -1,0 +1,75 @@
+"""A forward-facing sweep stand-in made from a shared scene: the views that face one way, at phone size.
+
+A forward-facing capture (a phone swept in front of a scene, LLFF-style) has views that all look
+the same way, so that every pair overlaps. This picks the `--count` views of SCENE whose optical
+axes are closest to the mean axis of all views, resizes each to a long side of `--long-side`
+pixels and saves it as JPEG at `--quality` (one camera, as from one phone), and writes the true
+model with the intrinsics scaled. It stands in for the geometry of a sweep (one direction, all pairs
+overlapping), not for a phone's optics (wide angle, rolling shutter, motion blur): on dtu-scan24 the
+views are about 12 degrees apart on a sphere, where a phone's video frames are a few degrees apart.
+
+    python lab/scripts/sweep_standin.py ../shared/data/dtu-scan24 DEST [--count 20] [--long-side 1008]
+
+DEST gets images/, gt/ (COLMAP text) and SCENE.md (how it was made and which views).
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+from PIL import Image
+
+
+def facing_views(gt: pycolmap.Reconstruction, count: int) -> list[int]:
+    """The `count` image ids whose optical axes are closest to the mean axis, in name order."""
+    ids = sorted(gt.images, key=lambda i: gt.images[i].name)
+    axes = np.array([gt.images[i].cam_from_world().rotation.matrix()[2] for i in ids])
+    mean = axes.mean(axis=0)
+    mean /= np.linalg.norm(mean)
+    order = np.argsort(-(axes @ mean), kind="stable")[:count]
+    return sorted((ids[k] for k in order), key=lambda i: gt.images[i].name)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("scene", type=Path)
+    parser.add_argument("dest", type=Path)
+    parser.add_argument("--count", type=int, default=20)
+    parser.add_argument("--long-side", type=int, default=1008)
+    parser.add_argument("--quality", type=int, default=90)
+    args = parser.parse_args()
+    gt = pycolmap.Reconstruction()
+    gt.read_text(str(args.scene / "gt"))
+    chosen = facing_views(gt, args.count)
+    (args.dest / "images").mkdir(parents=True, exist_ok=True)
+    (args.dest / "gt").mkdir(parents=True, exist_ok=True)
+    cameras, images = [], []
+    for k, image_id in enumerate(chosen, start=1):
+        image = gt.images[image_id]
+        photo = Image.open(args.scene / "images" / image.name).convert("RGB")
+        scale = args.long_side / max(photo.size)
+        photo = photo.resize((round(photo.width * scale), round(photo.height * scale)), Image.LANCZOS)
+        name = Path(image.name).with_suffix(".jpg").name
+        photo.save(args.dest / "images" / name, quality=args.quality)
+        sx, sy = photo.width / gt.cameras[image.camera_id].width, photo.height / gt.cameras[image.camera_id].height
+        fx, fy, cx, cy = gt.cameras[image.camera_id].params[:4]
+        cameras.append(f"{k} PINHOLE {photo.width} {photo.height} {fx * sx:.6f} {fy * sy:.6f} {cx * sx:.6f} {cy * sy:.6f}")
+        pose = image.cam_from_world()
+        qx, qy, qz, qw = pose.rotation.quat
+        tx, ty, tz = pose.translation
+        images.append(f"{k} {qw} {qx} {qy} {qz} {tx} {ty} {tz} {k} {name}\n\n")  # no 2D points: an empty line
+    (args.dest / "gt" / "cameras.txt").write_text("\n".join(cameras) + "\n")
+    (args.dest / "gt" / "images.txt").write_text("".join(images))
+    (args.dest / "gt" / "points3D.txt").write_text("")
+    (args.dest / "SCENE.md").write_text(
+        f"Forward-facing sweep stand-in of {args.scene.name} (lab/scripts/sweep_standin.py): the {args.count} "
+        f"views whose optical axes are closest to the mean axis, resized to a long side of {args.long_side} px, "
+        f"JPEG quality {args.quality}; one PINHOLE camera per image in gt/, intrinsics scaled.\n"
+        "views: " + " ".join(gt.images[i].name for i in chosen) + "\n")
+
+
+if __name__ == "__main__":
+    main()
