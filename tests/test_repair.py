@@ -3,7 +3,7 @@ from pathlib import Path
 import pytest
 
 from sara.config import MapConfig
-from sara.pairs.sara.repair import left_out_views, repair_pairs
+from sara.pairs.sara.repair import fill_pairs, left_out_views, repair_pairs
 
 
 def _scores(path: Path, rows):
@@ -80,6 +80,50 @@ def test_a_repair_that_leaves_most_of_its_views_out_is_not_repeated(tmp_path: Pa
     (tmp_path / "scores.csv").write_text(header + rows)
     registered.add("d")
     assert sara_source.after_mapping(ctx, pairs + first + second, model).pairs == [("c", "e")]
+
+
+def test_fill_pairs_are_the_best_unmatched_accepted_candidates(tmp_path: Path):
+    path = tmp_path / "scores.csv"
+    header = "name0,name1,num_matches,num_inliers,overlap,parallax_deg,weight,accepted,reason,role\n"
+    path.write_text(header + "a,b,50,40,0.1,5,0.9,true,,tree\n" + "a,c,50,40,0.1,5,0.2,true,,unselected\n"
+                    + "b,c,50,40,0.1,5,0.5,true,,unselected\n" + "c,d,50,40,0.1,5,0.7,false,low_parallax,rejected\n"
+                    + "b,d,50,40,0.1,5,0.4,true,,unselected\n")
+    assert fill_pairs(path, [("a", "b")], room=2) == [("b", "c"), ("b", "d")]  # 0.5, 0.4; never the rejected c-d
+    assert fill_pairs(path, [("a", "b")], room=9) == [("a", "c"), ("b", "c"), ("b", "d")]
+    assert fill_pairs(path, [("a", "b")], room=0) == []
+
+
+def test_views_a_repair_left_out_get_the_fill_round_once_then_the_pose_guided_one(tmp_path: Path, monkeypatch):
+    from types import SimpleNamespace
+
+    from sara.config import make_config
+    from sara.pairs.sara import rounds as sara_source
+
+    registered = {"a", "b", "c"}
+    monkeypatch.setattr(sara_source.colmap, "registered_images", lambda model_dir: set(registered))
+    monkeypatch.setattr(sara_source, "_repair_stalled", lambda ctx, key, pairs, left_out: True)
+    monkeypatch.setattr(sara_source, "pose_guided_round", lambda ctx, pairs, model_dir: [("a", "c")])
+    tree = [("a", "b"), ("b", "c"), ("c", "d"), ("d", "e")]
+    others = [("a", "c", 0.3), ("b", "d", 0.6), ("c", "e", 0.5), ("a", "e", 0.1)]
+    header = "name0,name1,num_matches,num_inliers,overlap,parallax_deg,weight,accepted,reason,role\n"
+    (tmp_path / "scores.csv").write_text(header + "".join(f"{a},{b},50,40,0.1,5,0.9,true,,tree\n" for a, b in tree)
+                                         + "".join(f"{a},{b},50,40,0.1,5,{w},true,,unselected\n" for a, b, w in others))
+    # a pair cap of 6 pairs for 5 views leaves room for 2 beyond the 4 matched
+    conf = make_config(overrides={"budget.max_pairs_per_image": 1.2, "budget.max_pairs_fraction": 1.0})
+    ctx = SimpleNamespace(names=["a", "b", "c", "d", "e"], out_dir=tmp_path, conf=conf, max_round_pairs=None)
+    model = tmp_path / "sparse" / "0"
+
+    fill = sara_source.after_mapping(ctx, tree, model)
+    assert (fill.role, fill.pairs) == ("fill", [("b", "d"), ("c", "e")])  # the best two by weight, within the cap
+    # after an interruption before they were matched: the same pairs
+    assert sara_source.after_mapping(ctx, tree, model).pairs == fill.pairs
+    # once matched, and views still out: not again, the pose-guided round instead
+    after = sara_source.after_mapping(ctx, tree + fill.pairs, model)
+    assert (after.role, after.pairs) == ("pose-guided", [("a", "c")])
+    # with every view in the model there is no fill round
+    registered.update({"d", "e"})
+    (tmp_path / ".sara" / "fill.json").unlink()
+    assert sara_source.after_mapping(ctx, tree, model).role == "pose-guided"
 
 
 class _Model:

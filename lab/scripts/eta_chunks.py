@@ -64,7 +64,7 @@ def main() -> None:
         pairs = first_pairs(run)
         chunks = chunked(pairs, args.chunk_size)
         progress = first_matching_progress((run / "stderr.log").read_text())
-        ends = {done: s for done, s in progress}
+        ends = dict(progress)
         bounds = np.cumsum([len(c) for c in chunks])
         if not progress or progress[-1][0] != len(pairs) or not all(int(b) in ends for b in bounds):
             print(f"{run.name}: {len(pairs)} pairs in {len(chunks)} chunks, the bar says {progress}: skipped")

@@ -56,7 +56,8 @@ def main() -> None:
         photo.save(args.dest / "images" / name, quality=args.quality)
         sx, sy = photo.width / gt.cameras[image.camera_id].width, photo.height / gt.cameras[image.camera_id].height
         fx, fy, cx, cy = gt.cameras[image.camera_id].params[:4]
-        cameras.append(f"{k} PINHOLE {photo.width} {photo.height} {fx * sx:.6f} {fy * sy:.6f} {cx * sx:.6f} {cy * sy:.6f}")
+        params = f"{fx * sx:.6f} {fy * sy:.6f} {cx * sx:.6f} {cy * sy:.6f}"
+        cameras.append(f"{k} PINHOLE {photo.width} {photo.height} {params}")
         pose = image.cam_from_world()
         qx, qy, qz, qw = pose.rotation.quat
         tx, ty, tz = pose.translation

@@ -30,8 +30,9 @@ from ..pipeline.rounds import ROUNDS_STAGE
 
 SELECTED_ROLES = ("tree", "loop", "anchor", "weak", "rescue")
 #: SARA's pairs matched after the first round: for weakly matched views before mapping, the
-#: pose-guided round, and repairs of views left out of the model
-ADDED_ROLES = ("support", "pose-guided", "repair")
+#: pose-guided round, repairs of views left out of the model, and the fill round after a repair
+#: that left them out
+ADDED_ROLES = ("support", "pose-guided", "repair", "fill")
 ALL_ROLES = SELECTED_ROLES + ADDED_ROLES + ("selected", "unselected", "rejected")
 
 

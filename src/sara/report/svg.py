@@ -29,13 +29,14 @@ ROLE_STYLE: dict[str, tuple[str, float, float, str]] = {
     "support": ("#00897b", 2.0, 0.9, "6 3"),
     "pose-guided": ("#f06292", 2.0, 0.9, "6 3"),
     "repair": ("#c2185b", 2.0, 0.9, "6 3"),
+    "fill": ("#5d4037", 2.0, 0.9, "6 3"),
     "selected": ("#1f4e9c", 2.0, 0.9, ""),
     "unselected": ("#8a96a3", 0.8, 0.35, ""),
     "rejected": ("#d62728", 0.8, 0.22, "2 3"),
 }
 #: drawing order, faint first so the chosen edges lie on top
-ROLE_ORDER = ("rejected", "unselected", "repair", "pose-guided", "support", "rescue", "weak", "anchor", "loop", "tree",
-              "selected")
+ROLE_ORDER = ("rejected", "unselected", "fill", "repair", "pose-guided", "support", "rescue", "weak", "anchor", "loop",
+              "tree", "selected")
 #: the style of a role this page does not know (a pair source's own round): dashed, like the added roles
 OTHER_ROLE_STYLE = ("#6d4c41", 2.0, 0.9, "6 3")
 

@@ -58,6 +58,11 @@ class PairBudget:
         left out of the model (a view without a pair into the model cannot be registered)."""
         return self._in_time(max(self.budget.pair_cap(self.num_images) - num_matched, num_left_out))
 
+    def fill(self, num_matched: int) -> int:
+        """Pairs the fill round may add (after a repair that left its views out): the room under the
+        usual cap."""
+        return self._in_time(max(0, self.budget.pair_cap(self.num_images) - num_matched))
+
     def pose_guided(self, num_matched: int, num_registered: int) -> int:
         """Pairs the pose-guided round may add: its own share per registered view
         (`rounds.pose_guided_pairs_per_image`, or `budget.densify_pairs_per_image` with densify),

@@ -1,9 +1,11 @@
 """SARA's rounds around mapping, behind the `sara.pairs.Rounds` seam:
 
 - before the first mapping, `support` pairs for views whose matched pairs hold few inliers;
-- after it, `repair` pairs for views the mapper left out of the main model, or else, once, the
-  `pose-guided` pairs the first model predicts to add the most observations; the model is then
-  refined with its poses fixed instead of mapped again (`pose_guided.refine`);
+- after it, `repair` pairs for views the mapper left out of the main model; where a repair left
+  most of its views out, once, the `fill` pairs (the best unmatched candidates of all views, up to
+  the cap); or else, once, the `pose-guided` pairs the first model predicts to add the most
+  observations; the model is then refined with its poses fixed instead of mapped again
+  (`pose_guided.refine`);
 - on the final model, when no refinement did it, its tracks are extended (`pose_guided.finish`).
 
 Every round takes its pairs from the one ledger, `budget.PairBudget`.
@@ -24,7 +26,7 @@ from ...io.scores import read_scores_csv
 from .. import NoRounds, PairContext, Round
 from . import pose_guided
 from .budget import PairBudget
-from .repair import left_out_views, repair_pairs
+from .repair import fill_pairs, left_out_views, repair_pairs
 from .source import SCORES_NAME
 from .support import support_pairs, view_inliers
 
@@ -34,6 +36,8 @@ logger = logging.getLogger(__name__)
 REPAIR_STAGE = "repair_views"
 #: record of the pairs added before the first mapping for weakly matched views
 SUPPORT_STAGE = "support"
+#: record of the fill round's pairs (once per selection)
+FILL_STAGE = "fill"
 
 
 def budget_of(ctx: PairContext) -> PairBudget:
@@ -63,10 +67,12 @@ def after_mapping(ctx: PairContext, pairs: list[Pair], model_dir: Path) -> Round
     1. views that the mapper left out of the main model although the selected graph joins them to
        it: their best unselected candidates into the main model (`repair.py`), unless the last
        round was such a repair and most of its views are still out (`_repair_stalled`);
-    2. otherwise, once: the pose-guided round (`pose_guided.py`), the unmatched pairs of registered
+    2. then, while views are still out, once: the best unmatched candidates of all views by weight,
+       up to the cap (`repair.fill_pairs`);
+    3. otherwise, once: the pose-guided round (`pose_guided.py`), the unmatched pairs of registered
        views that the model predicts to add the most observations.
 
-    Returns the pairs and their role (`repair` or `pose-guided`).
+    Returns the pairs and their role (`repair`, `fill` or `pose-guided`).
     """
     main = colmap.registered_images(model_dir)
     left_out = left_out_views(ctx.names, pairs, main)
@@ -81,7 +87,24 @@ def after_mapping(ctx: PairContext, pairs: list[Pair], model_dir: Path) -> Round
             records.mark_done(ctx.out_dir, REPAIR_STAGE, key,
                               {"left_out": sorted(left_out), "pairs": _pairs_key(pairs + extra), "stalled": False})
         return Round(extra, "repair")
+    if left_out and (extra := fill_round(ctx, pairs, len(left_out))):
+        return Round(extra, "fill")
     return Round(pose_guided_round(ctx, pairs, model_dir), "pose-guided")
+
+
+def fill_round(ctx: PairContext, pairs: list[Pair], num_left_out: int) -> list[Pair]:
+    """The fill pairs, once per selection ([] once they are matched, the same pairs again after an
+    interruption)."""
+    key = _selection_key(ctx)
+    record = records.read_record(ctx.out_dir, FILL_STAGE)
+    if record and record.get("done") is True and record.get("key") == key:
+        return _still_to_match([(a, b) for a, b in record.get("info", {}).get("pairs", [])], pairs)
+    extra = fill_pairs(ctx.out_dir / SCORES_NAME, pairs, budget_of(ctx).fill(len(pairs)))
+    records.mark_done(ctx.out_dir, FILL_STAGE, key, {"left_out": num_left_out, "pairs": [list(p) for p in extra]})
+    if extra:
+        logger.warning("%d views are still out of the main model after a repair for them: the graph is too sparse "
+                       "there; matching the %d best remaining candidates and mapping again", num_left_out, len(extra))
+    return extra
 
 
 def before_mapping(ctx: PairContext, pairs: list[Pair], db_path: Path) -> list[Pair]:
