@@ -94,6 +94,7 @@ def test_fill_pairs_are_the_best_unmatched_accepted_candidates(tmp_path: Path):
 
 
 def test_views_a_repair_left_out_get_the_fill_round_once_then_the_pose_guided_one(tmp_path: Path, monkeypatch):
+    """Views a repair could not bring in: the rest of the cap on the best remaining pairs, once."""
     from types import SimpleNamespace
 
     from sara.config import make_config
@@ -124,6 +125,11 @@ def test_views_a_repair_left_out_get_the_fill_round_once_then_the_pose_guided_on
     registered.update({"d", "e"})
     (tmp_path / ".sara" / "fill.json").unlink()
     assert sara_source.after_mapping(ctx, tree, model).role == "pose-guided"
+    # a repair that finds no candidate into the model (not stalled) leads to the fill round too
+    registered.difference_update({"d", "e"})
+    monkeypatch.setattr(sara_source, "_repair_stalled", lambda ctx, key, pairs, left_out: False)
+    monkeypatch.setattr(sara_source, "repair_pairs", lambda scores, pairs, main, left_out, per_view: [])
+    assert sara_source.after_mapping(ctx, tree, model).role == "fill"
 
 
 class _Model:

@@ -67,8 +67,8 @@ def after_mapping(ctx: PairContext, pairs: list[Pair], model_dir: Path) -> Round
     1. views that the mapper left out of the main model although the selected graph joins them to
        it: their best unselected candidates into the main model (`repair.py`), unless the last
        round was such a repair and most of its views are still out (`_repair_stalled`);
-    2. then, while views are still out, once: the best unmatched candidates of all views by weight,
-       up to the cap (`repair.fill_pairs`);
+    2. then, while views are still out (the repair stalled, or found no candidate into the model),
+       once: the best unmatched candidates of all views by weight, up to the cap (`repair.fill_pairs`);
     3. otherwise, once: the pose-guided round (`pose_guided.py`), the unmatched pairs of registered
        views that the model predicts to add the most observations.
 
@@ -86,7 +86,7 @@ def after_mapping(ctx: PairContext, pairs: list[Pair], model_dir: Path) -> Round
                            len(left_out), len(extra))
             records.mark_done(ctx.out_dir, REPAIR_STAGE, key,
                               {"left_out": sorted(left_out), "pairs": _pairs_key(pairs + extra), "stalled": False})
-        return Round(extra, "repair")
+            return Round(extra, "repair")
     if left_out and (extra := fill_round(ctx, pairs, len(left_out))):
         return Round(extra, "fill")
     return Round(pose_guided_round(ctx, pairs, model_dir), "pose-guided")
