@@ -59,9 +59,9 @@ class PairBudget:
         return self._in_time(max(self.budget.pair_cap(self.num_images) - num_matched, num_left_out))
 
     def fill(self, num_matched: int) -> int:
-        """Pairs the fill round may add (after a repair that left its views out): the room under the
-        usual cap."""
-        return self._in_time(max(0, self.budget.pair_cap(self.num_images) - num_matched))
+        """Pairs the fill round may add (after a repair that left its views out): a repair's room,
+        with no view left to guarantee a pair."""
+        return self.repair(num_matched, num_left_out=0)
 
     def pose_guided(self, num_matched: int, num_registered: int) -> int:
         """Pairs the pose-guided round may add: its own share per registered view

@@ -87,15 +87,14 @@ def after_mapping(ctx: PairContext, pairs: list[Pair], model_dir: Path) -> Round
             records.mark_done(ctx.out_dir, REPAIR_STAGE, key,
                               {"left_out": sorted(left_out), "pairs": _pairs_key(pairs + extra), "stalled": False})
             return Round(extra, "repair")
-    if left_out and (extra := fill_round(ctx, pairs, len(left_out))):
+    if left_out and (extra := fill_round(ctx, pairs, key, len(left_out))):
         return Round(extra, "fill")
     return Round(pose_guided_round(ctx, pairs, model_dir), "pose-guided")
 
 
-def fill_round(ctx: PairContext, pairs: list[Pair], num_left_out: int) -> list[Pair]:
-    """The fill pairs, once per selection ([] once they are matched, the same pairs again after an
-    interruption)."""
-    key = _selection_key(ctx)
+def fill_round(ctx: PairContext, pairs: list[Pair], key: str, num_left_out: int) -> list[Pair]:
+    """The fill pairs, once per selection (`key`, `_selection_key`): [] once they are matched, the
+    same pairs again after an interruption."""
     record = records.read_record(ctx.out_dir, FILL_STAGE)
     if record and record.get("done") is True and record.get("key") == key:
         return _still_to_match([(a, b) for a, b in record.get("info", {}).get("pairs", [])], pairs)
