@@ -13,9 +13,11 @@ writes output files.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import multiprocessing
 import os
+import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor
@@ -170,3 +172,46 @@ EXECUTORS: Registry[Callable[[int, str], Executor]] = Registry("executor", {
 def make_executor(name: str = "auto", workers: int = 0, address: str = "") -> Executor:
     """The executor `name` with `workers` workers (0: one per core)."""
     return EXECUTORS.get(name)(resolve_workers(workers), address)
+
+
+class Beside:
+    """Runs `step` again and again on a thread of the lowest priority while this process waits on
+    another that keeps every core busy (COLMAP's extraction): `poke` asks for one more run (raising
+    what the last one raised), leaving the block waits for the one under way. The thread gets only
+    the CPU time the other process leaves (its reader idling at the start, one image left at the
+    end), so it adds little to the wait."""
+
+    def __init__(self, step: Callable[[], None]) -> None:
+        self.step, self.error = step, None
+        self._wake, self._stop = threading.Event(), False
+        self._thread = threading.Thread(target=self._run, daemon=True, name="sara-beside")
+
+    def _run(self) -> None:
+        with contextlib.suppress(OSError, AttributeError):  # Linux: a thread's own niceness
+            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 19)
+        while True:
+            self._wake.wait()
+            self._wake.clear()
+            if self._stop:
+                return
+            try:
+                self.step()
+            except BaseException as exc:  # noqa: BLE001 - raised in the caller's thread by poke / exit
+                self.error = exc
+                return
+
+    def poke(self) -> None:
+        if self.error is not None:
+            raise self.error
+        self._wake.set()
+
+    def __enter__(self) -> Beside:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop = True
+        self._wake.set()
+        self._thread.join()
+        if self.error is not None and exc[0] is None:
+            raise self.error

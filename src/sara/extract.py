@@ -7,6 +7,7 @@ import logging
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 
 import h5py
@@ -15,9 +16,9 @@ from tqdm import tqdm
 
 from . import colmap
 from .config import ExtractConfig
-from .descriptors import l2_normalize
-from .execute import Executor, SerialExecutor, for_device, single_threaded_torch_in_worker
+from .execute import Beside, Executor, SerialExecutor, for_device, single_threaded_torch_in_worker
 from .features import Keypoints, LocalFeatures, features_file_name, make_backend
+from .features.sift import ColmapSift, DatabaseToH5, not_extracted
 from .io import DamagedOutputError, OutputStateError, atomic_path, ensure_free_space, fingerprint, records
 from .io.h5 import H5_ERRORS, Features, features_digest, has_features, write_features
 from .io.images import ImageSet, content_digests, exif_camera, load_image, save_digests, set_aside, to_full_resolution
@@ -148,46 +149,97 @@ def run(conf: ExtractConfig, images: ImageSet, out_dir: Path, *, executor: Execu
         h5_path.unlink(missing_ok=True)
         _partial(h5_path).unlink(missing_ok=True)
     save_digests_()
-    uses_colmap_reader = hasattr(backend, "extract_to_database")
-    cannot_read = unreadable(images, progress) if uses_colmap_reader else {}
-    readable = set_aside(images, cannot_read)
-    if db_path.exists() and not _check_existing_database(db_path, readable):
-        colmap.remove_database(db_path)  # images were being imported when the run stopped: importing is cheap
     records.mark_started(out_dir, STAGE, key)
-
-    camera_mode = resolve_camera_mode(readable, conf)
-    if not db_path.exists():
-        _new_database(db_path, readable, conf, camera_mode)
-    if uses_colmap_reader:
-        todo = sorted(set(readable.names) - colmap.images_with_keypoints(db_path))
-        if todo:
-            ensure_free_space(out_dir, _bytes_per_image(conf) * len(todo))
-            backend.extract_to_database(db_path, readable, todo, progress=progress)
-        failed = _failed_in_extraction(readable, colmap.images_with_keypoints(db_path), todo)
-        readable = set_aside(readable, failed)
-        counts = _export_h5(db_path, h5_path, readable, progress)
+    camera_mode = resolve_camera_mode(images, conf)
+    wants_focal = conf.estimate_focal and camera_mode == "single" and not conf.camera_params
+    if hasattr(backend, "extract_to_database"):
+        counts, failed, fundamentals = _extract_sift(backend, db_path, h5_path, images, camera_mode, wants_focal,
+                                                     progress)
+        set_aside(images, failed)  # one warning each
+        estimate_with = None if fundamentals is None else partial(focal.estimate, fundamentals)
     else:
-        counts, failed = extract_to_h5(backend, conf, readable, h5_path, executor, progress)
-        readable = set_aside(readable, failed)
-        import_keypoints(db_path, h5_path, readable.names)
+        if db_path.exists() and not _check_existing_database(db_path, images):
+            colmap.remove_database(db_path)  # images were being imported when the run stopped: importing is cheap
+        if not db_path.exists():
+            _new_database(db_path, images, conf, camera_mode)
+        counts, failed = extract_to_h5(backend, conf, images, h5_path, executor, progress)
+        kept = set_aside(images, failed).names
+        import_keypoints(db_path, h5_path, kept)
+        estimate_with = partial(focal.estimate_from_features, h5_path, kept) if wants_focal else None
     info = summarize(counts)
-    if conf.estimate_focal and camera_mode == "single" and not conf.camera_params:
-        info["focal"] = _check_focal(db_path, h5_path, readable.names)
+    if estimate_with is not None:
+        info["focal"] = _check_focal(db_path, estimate_with)
     info.update(camera_mode=camera_mode, backend=conf.backend, features=h5_path.name,
-                skipped={**cannot_read, **failed}, time_s=time.perf_counter() - tic,
-                settings=settings_of(conf), images=digests, usable_key=key_without(set(cannot_read) | set(failed)))
+                skipped=failed, time_s=time.perf_counter() - tic,
+                settings=settings_of(conf), images=digests, usable_key=key_without(set(failed)))
     records.mark_done(out_dir, STAGE, key, info, outputs=recorded(db_path, h5_path))
     return h5_path
 
 
-def _check_focal(db_path: Path, h5_path: Path, names: list[str]) -> dict | None:
+def _extract_sift(backend: ColmapSift, db_path: Path, h5_path: Path, images: ImageSet, camera_mode: str,
+                  wants_focal: bool, progress: bool) -> tuple[dict[str, int], dict[str, str], list | None]:
+    """COLMAP's SIFT into the database, each image decoded once, by COLMAP's reader, which imports
+    it too (an image it cannot decode is set aside after, with the reason); the features copied
+    into `h5_path` and the focal check's pairs fitted while COLMAP extracts. Returns keypoints per
+    image, the images set aside (name -> why), and the focal check's fundamental matrices (None
+    when there is nothing to check: not `wants_focal`, or the focal length came with the images)."""
+    existing = _resumable_database(db_path, images, camera_mode)
+    if not db_path.exists():
+        with atomic_path(db_path) as tmp:
+            tmp.unlink()
+            colmap.create_database(tmp)
+    todo = sorted(set(images.names) - colmap.images_with_keypoints(db_path))
+    nearby = focal.NearbyFundamentals(images.names) if wants_focal else None
+    with atomic_path(h5_path) as tmp, h5py.File(tmp, "w") as h5:
+        copy = DatabaseToH5(db_path, h5, images.sizes)
+
+        def strongest(name: str) -> Features:
+            return copy.read(name, focal.NUM_KEYPOINTS)
+
+        def on_watch() -> None:
+            nonlocal nearby
+            copy.update()
+            if nearby is not None and copy.counts and any(colmap.camera_priors(db_path).values()):
+                nearby = None  # the focal length came with the images (EXIF): nothing to check
+            if nearby is not None:
+                nearby.add(strongest, copy.counts)
+
+        if todo:
+            ensure_free_space(db_path.parent, _bytes_per_image(backend.conf) * len(todo))
+            with Beside(on_watch) as beside:
+                backend.extract_to_database(db_path, images, todo, progress=progress, camera_mode=camera_mode,
+                                            existing_camera_id=existing, on_watch=beside.poke)
+        failed = not_extracted(images, colmap.images_with_keypoints(db_path), todo)
+        on_watch()  # what COLMAP wrote after the last look
+        kept = [n for n in images.names if n not in failed]
+        fundamentals = None if nearby is None else nearby.fundamentals(kept, strongest)
+    return {n: copy.counts[n] for n in kept}, failed, fundamentals
+
+
+def _resumable_database(db_path: Path, images: ImageSet, camera_mode: str) -> int | None:
+    """Check a database left by an earlier SIFT extraction (it holds the images COLMAP had read);
+    returns the shared camera that the images still to read must join, if any. One that cannot
+    be resumed is removed: images in folders that each have a camera (COLMAP would give a folder
+    a second one)."""
+    if not db_path.exists():
+        return None
+    _check_existing_database(db_path, images)
+    in_db, cameras = colmap.database_images(db_path), colmap.camera_priors(db_path)
+    if camera_mode == "per_folder" and cameras and len(in_db) < len(images.names):
+        colmap.remove_database(db_path)
+        return None
+    return next(iter(cameras)) if camera_mode == "single" and len(cameras) == 1 else None
+
+
+def _check_focal(db_path: Path, estimate_with: Callable[[int, int, float], focal.FocalEstimate | None]) -> dict | None:
     """Replace COLMAP's focal prior of the shared camera by an estimate from the images where that
-    is clearly longer (`sara.scoring.focal`); what was found goes into the stage record."""
+    is clearly longer (`sara.scoring.focal`; `estimate_with(width, height, prior)`); what was found
+    goes into the stage record."""
     camera = colmap.shared_camera(db_path)
     if camera is None or camera.has_prior_focal_length:  # EXIF gave the focal length
         return None
     prior = float(camera.mean_focal_length())
-    found = focal.estimate_from_features(h5_path, names, camera.width, camera.height, prior)
+    found = estimate_with(camera.width, camera.height, prior)
     if found is None:
         logger.info("focal length: too few pairs of neighbouring images that tell it (a camera moving straight "
                     "ahead tells none) to check COLMAP's prior (%.0f px)", prior)
@@ -261,30 +313,6 @@ def _new_database(db_path: Path, images: ImageSet, conf: ExtractConfig, camera_m
         colmap.import_images(tmp, images.root, images.names, camera_mode=camera_mode,
                              camera_model=conf.camera_model, camera_params=conf.camera_params,
                              default_focal_length_factor=conf.default_focal_length_factor)
-
-
-def unreadable(images: ImageSet, progress: bool) -> dict[str, str]:
-    """Images that COLMAP's reader (the one its SIFT extraction uses) cannot decode: name -> why."""
-    out = {}
-    for name in tqdm(images.names, desc="check images (COLMAP)", unit="img", disable=not progress):
-        problem = colmap.image_read_problem(images.root / name)
-        if problem is not None:
-            out[name] = problem
-    return out
-
-
-def _failed_in_extraction(images: ImageSet, with_keypoints: set[str], todo: list[str]) -> dict[str, str]:
-    """Images COLMAP did not extract although they were readable at the check: gone or changed since."""
-    out = {}
-    for name in todo:
-        if name in with_keypoints:
-            continue
-        path = images.root / name
-        if not path.exists():
-            out[name] = "the file disappeared during extraction"
-        else:
-            out[name] = colmap.image_read_problem(path) or "COLMAP's extraction skipped it (see its log in logs/)"
-    return out
 
 
 def _bytes_per_image(conf: ExtractConfig) -> int:
@@ -390,29 +418,6 @@ def import_keypoints(db_path: Path, h5_path: Path, names: list[str]) -> None:
     with h5py.File(h5_path, "r") as h5:
         keypoints = {n: colmap.hloc_to_colmap_keypoints(h5[n]["keypoints"][()]) for n in sorted(missing)}
     colmap.write_keypoints(db_path, keypoints)
-
-
-def _export_h5(db_path: Path, h5_path: Path, images: ImageSet, progress: bool) -> dict[str, int]:
-    """Copy the database's SIFT features of `images` into `h5_path`; returns keypoints per image."""
-    num_kp: dict[str, int] = {}
-    with colmap.FeatureReader(db_path) as reader, atomic_path(h5_path) as tmp:
-        with h5py.File(tmp, "w") as h5:
-            ids = sorted((name, image_id) for name, image_id in reader.image_ids().items() if name in images.sizes)
-            for name, image_id in tqdm(ids, desc=f"write {h5_path.name}", unit="img", disable=not progress):
-                kp, scale, desc = reader.read_sift(image_id)
-                # HDF5 crashes on a full disk: make sure the image fits before writing it
-                ensure_free_space(h5_path.parent, len(kp) * (8 + 4 + 2 * desc.shape[-1]) + 4096)
-                write_features(h5, name, Features(
-                    keypoints=colmap.colmap_to_hloc_keypoints(kp), descriptors=hloc_descriptors(desc),
-                    scores=scale, image_size=images.sizes[name]))
-                num_kp[name] = len(kp)
-    return num_kp
-
-
-def hloc_descriptors(desc: np.ndarray) -> np.ndarray:
-    """COLMAP's uint8 RootSIFT (norm about 512) -> unit-length float16, as hloc's extractors store
-    descriptors, so that hloc's ratio and distance tests work on sara's files."""
-    return l2_normalize(desc, axis=1).astype(np.float16)
 
 
 def summarize(num_kp: dict[str, int]) -> dict:

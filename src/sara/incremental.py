@@ -35,6 +35,7 @@ from . import colmap, extract
 from .config import ExtractConfig
 from .execute import Executor
 from .features import features_file_name, make_backend
+from .features.sift import hloc_descriptors, unreadable
 from .io import atomic_path, records
 from .io.h5 import Features, has_features, write_features
 from .io.images import ImageSet, set_aside
@@ -203,7 +204,7 @@ def _update_copies(conf: ExtractConfig, images: ImageSet, out_dir: Path, change:
     backend = make_backend(conf)
     come = ImageSet(images.root, change.to_extract, {n: images.sizes[n] for n in change.to_extract})
     uses_colmap_reader = hasattr(backend, "extract_to_database")
-    readable = set_aside(come, extract.unreadable(come, progress)) if uses_colmap_reader else come
+    readable = set_aside(come, unreadable(come, progress)) if uses_colmap_reader else come
     _import(db, images, [n for n in readable.names if n not in colmap.database_images(db)], conf, info)
     todo = sorted(set(readable.names) - colmap.images_with_keypoints(db))
     if uses_colmap_reader:
@@ -260,7 +261,7 @@ def _write_features(out_dir: Path, conf: ExtractConfig, images: ImageSet, change
                     continue
                 kp, scale, desc = reader.read_sift(image_id)
                 write_features(new, image, Features(keypoints=colmap.colmap_to_hloc_keypoints(kp),
-                                                    descriptors=extract.hloc_descriptors(desc), scores=scale,
+                                                    descriptors=hloc_descriptors(desc), scores=scale,
                                                     image_size=images.sizes[image]))
 
 

@@ -36,6 +36,7 @@ from .database import (
     write_matches,
 )
 from .database_queries import (
+    camera_priors,
     database_images,
     database_summary,
     images_with_keypoints,
@@ -67,6 +68,7 @@ from .sift import (
     count_with_keypoints,
     extract_sift,
     image_read_problem,
+    read_sift_rows,
     sift_of_image,
 )
 from .synthetic import synthesize_scene
@@ -80,6 +82,7 @@ __all__ = [
     "MappedModels",
     "ModelSummary",
     "build_visual_index",
+    "camera_priors",
     "cameras_and_poses",
     "cameras_by_image",
     "clear_matches",
@@ -111,6 +114,7 @@ __all__ = [
     "mean_focal_px",
     "quiet_signals_in_worker",
     "prune_model",
+    "read_sift_rows",
     "read_summary",
     "registered_images",
     "remove_database",

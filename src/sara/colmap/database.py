@@ -20,7 +20,7 @@ from ..io import atomic_path
 from .geometry import CameraInfo
 from .native import native_errors
 
-_CAMERA_MODES = {
+CAMERA_MODES = {
     "single": pycolmap.CameraMode.SINGLE,
     "per_image": pycolmap.CameraMode.PER_IMAGE,
     "per_folder": pycolmap.CameraMode.PER_FOLDER,
@@ -96,7 +96,7 @@ def import_images(db_path: Path, image_dir: Path, names: list[str], *, camera_mo
     opts.default_focal_length_factor = default_focal_length_factor
     with native_errors("import the images into the database", Path(db_path).parent):
         pycolmap.import_images(
-            str(db_path), str(image_dir), camera_mode=_CAMERA_MODES[camera_mode], image_names=names, options=opts
+            str(db_path), str(image_dir), camera_mode=CAMERA_MODES[camera_mode], image_names=names, options=opts
         )
 
 

@@ -32,13 +32,14 @@ def _sqlite_header_problem(path: Path) -> str | None:
     return None
 
 
-def _query(db_path: Path, *queries: tuple[str, tuple]) -> list[list[tuple]]:
+def _query(db_path: Path, *queries: tuple[str, tuple], modes: tuple[str, ...] = ("rw", "ro")) -> list[list[tuple]]:
     """Run read-only SQL on a database with SQLite alone (pycolmap's open writes to the file even
     when only reading, which would change its bytes). Opened read-write when possible, so that a
-    write-ahead log is merged and removed on close; read-only in a read-only folder."""
+    write-ahead log is merged and removed on close; read-only in a read-only folder (and with
+    `modes=("ro",)`, for a database that COLMAP is writing in another process)."""
     import sqlite3
 
-    for mode in ("rw", "ro"):
+    for mode in modes:
         try:
             con = sqlite3.connect(f"file:{db_path}?mode={mode}", uri=True)
             try:
@@ -153,3 +154,10 @@ def database_images(db_path: Path) -> dict[str, int]:
     """name -> image_id of the images in a database (read with SQLite: the file is not touched)."""
     (rows,) = _query(db_path, ("SELECT name, image_id FROM images", ()))
     return {name: int(image_id) for name, image_id in rows}
+
+
+def camera_priors(db_path: Path) -> dict[int, bool]:
+    """camera_id -> whether its focal length came with the images (EXIF): read-only, also while
+    COLMAP writes the database in another process."""
+    (rows,) = _query(db_path, ("SELECT camera_id, prior_focal_length FROM cameras", ()), modes=("ro",))
+    return {int(camera_id): bool(prior) for camera_id, prior in rows}

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import contextlib
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Container
 from pathlib import Path
 from types import TracebackType
 from typing import Self
@@ -17,7 +17,7 @@ from typing import Self
 import numpy as np
 import pycolmap
 
-from .database import image_ids_in, open_pycolmap_database
+from .database import CAMERA_MODES, image_ids_in, open_pycolmap_database
 from .native import log_settings, native_errors
 
 
@@ -33,19 +33,25 @@ def image_read_problem(path: Path) -> str | None:
 
 
 def extract_sift(db_path: Path, image_dir: Path, names: list[str], *, max_image_size: int, max_num_features: int,
-                 camera_model: str, camera_params: str = "", num_threads: int = -1,
+                 camera_model: str, camera_params: str = "", num_threads: int = -1, camera_mode: str = "auto",
+                 existing_camera_id: int | None = None, default_focal_length_factor: float = 1.2,
                  watch: Callable[[int | None], None] | None = None) -> None:
-    """SIFT (RootSIFT, COLMAP defaults) for images already imported; images with features are skipped.
+    """SIFT (RootSIFT, COLMAP defaults) of `names`; images with features are skipped.
 
-    One call of COLMAP for all `names`: its reader, extractor and writer threads stay busy to the
-    end (in chunks, they idled at the end of each). With `watch`, the call runs in a process of its
-    own (`extract_process`) and `watch` is called about every `extract_process.WATCH_S` seconds
-    with the number of images with keypoints in the database (None while it cannot be read); when
-    `watch` raises (Ctrl-C included), the process is stopped and the error raised here. Images
-    finished before stay in the database."""
+    Images not in the database yet are imported by the same pass of COLMAP's reader, each image
+    decoded once (`camera_mode`, `existing_camera_id` for the images of a resumed run, and the
+    focal prior's `default_focal_length_factor` as in `import_images`); an image the reader cannot
+    decode is left out of the database. One call of COLMAP for all `names`: its reader, extractor
+    and writer threads stay busy to the end (in chunks, they idled at the end of each). With
+    `watch`, the call runs in a process of its own (`extract_process`) and `watch` is called about
+    every `extract_process.WATCH_S` seconds with the number of images with keypoints in the
+    database (None while it cannot be read); when `watch` raises (Ctrl-C included), the process is
+    stopped and the error raised here. Images finished before stay in the database."""
     args = {"db_path": str(db_path), "image_dir": str(image_dir), "names": list(names),
             "max_image_size": max_image_size, "max_num_features": max_num_features,
-            "camera_model": camera_model, "camera_params": camera_params, "num_threads": num_threads}
+            "camera_model": camera_model, "camera_params": camera_params, "num_threads": num_threads,
+            "camera_mode": camera_mode, "existing_camera_id": existing_camera_id,
+            "default_focal_length_factor": default_focal_length_factor}
     if watch is None:
         with native_errors("extract SIFT features", Path(db_path).parent):
             extract_now(**args)
@@ -58,7 +64,8 @@ def extract_sift(db_path: Path, image_dir: Path, names: list[str], *, max_image_
 
 
 def extract_now(db_path: str, image_dir: str, names: list[str], max_image_size: int, max_num_features: int,
-                camera_model: str, camera_params: str, num_threads: int) -> None:
+                camera_model: str, camera_params: str, num_threads: int, camera_mode: str = "auto",
+                existing_camera_id: int | None = None, default_focal_length_factor: float = 1.2) -> None:
     """pycolmap's extraction into the database, in this process and thread."""
     opts = pycolmap.FeatureExtractionOptions()
     opts.max_image_size = max_image_size
@@ -67,8 +74,11 @@ def extract_now(db_path: str, image_dir: str, names: list[str], max_image_size: 
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = camera_model
     reader.camera_params = camera_params
-    pycolmap.extract_features(db_path, image_dir, image_names=names, reader_options=reader,
-                              extraction_options=opts, device=pycolmap.Device.cpu)
+    reader.default_focal_length_factor = default_focal_length_factor
+    if existing_camera_id is not None:
+        reader.existing_camera_id = existing_camera_id
+    pycolmap.extract_features(db_path, image_dir, image_names=names, camera_mode=CAMERA_MODES[camera_mode],
+                              reader_options=reader, extraction_options=opts, device=pycolmap.Device.cpu)
 
 
 def count_with_keypoints(db_path: Path) -> int | None:
@@ -83,6 +93,30 @@ def count_with_keypoints(db_path: Path) -> int | None:
             con.close()
     except sqlite3.Error:
         return None
+
+
+def read_sift_rows(db_path: Path, known: Container[int] = ()) -> dict[str, tuple[int, np.ndarray, np.ndarray,
+                                                                                   np.ndarray]]:
+    """name -> (image_id, keypoints, scales, descriptors) as `FeatureReader.read_sift`, of the images
+    with keypoints and descriptors whose image_id is not in `known`. Read with SQLite alone, so also
+    from a database that COLMAP is writing in another process."""
+    import sqlite3
+
+    con = sqlite3.connect(f"file:{db_path}?mode=ro", uri=True, timeout=5.0)
+    try:
+        ids = con.execute("SELECT image_id, name FROM images JOIN keypoints USING (image_id) "
+                          "JOIN descriptors USING (image_id)").fetchall()
+        new = {int(image_id): name for image_id, name in ids if int(image_id) not in known}
+        out = {}
+        for image_id, name in new.items():
+            (k_rows, k_data), = con.execute("SELECT rows, data FROM keypoints WHERE image_id = ?", (image_id,))
+            (d_rows, d_data), = con.execute("SELECT rows, data FROM descriptors WHERE image_id = ?", (image_id,))
+            kp = np.frombuffer(k_data, np.float32).reshape(k_rows, -1) if k_rows else np.zeros((0, 2), np.float32)
+            desc = np.frombuffer(d_data, np.uint8).reshape(d_rows, -1) if d_rows else np.zeros((0, 128), np.uint8)
+            out[name] = (image_id, *_split_keypoints(kp, desc))
+        return out
+    finally:
+        con.close()
 
 
 def sift_of_image(image: np.ndarray, *, max_num_features: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

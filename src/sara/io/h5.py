@@ -53,6 +53,11 @@ def read_features(path: Path, name: str, *, top_k: int | None = None) -> Feature
         return _read_group(h5, name, path, top_k)
 
 
+def read_open(h5: h5py.File, name: str, *, top_k: int | None = None) -> Features:
+    """`read_features` from a file already open (one still being written, too)."""
+    return _read_group(h5, name, Path(h5.filename), top_k)
+
+
 def _read_group(h5: h5py.File, name: str, path: Path, top_k: int | None) -> Features:
     if name not in h5:
         raise KeyError(f"image {name!r} has no features in {path}")

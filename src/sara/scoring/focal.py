@@ -27,14 +27,16 @@ what kind of spanning tree the selection builds (`sara.pairs.sara.field_of_view`
 
 from __future__ import annotations
 
+from collections.abc import Callable, Container
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from .. import colmap
 from ..descriptors import mutual_nearest_neighbours
-from ..io.h5 import FeatureCache
+from ..io.h5 import FeatureCache, Features
 
 #: focal lengths tried, as multiples of the larger image side
 GRID = np.geomspace(0.25, 8.0, 61)
@@ -152,17 +154,49 @@ def estimate(fundamentals: list[np.ndarray], width: int, height: int, prior_px: 
                          sharpness=below / max(float(median[best]), 1e-300), agreement=agreement)
 
 
+def pair_fundamental(fa: Features, fb: Features, *, seed: int = 0) -> np.ndarray | None:
+    """The fundamental matrix of two images' strongest features (mutual nearest neighbours), or None
+    with fewer than `MIN_INLIERS` inliers."""
+    matches = mutual_nearest_neighbours(fa.descriptors, fb.descriptors, NUM_MATCHES)[0]
+    found = colmap.estimate_fundamental(fa.keypoints[matches[:, 0]], fb.keypoints[matches[:, 1]],
+                                        max_error_px=MAX_ERROR_PX, max_trials=MAX_TRIALS, seed=seed)
+    return found[0] if found is not None and found[1] >= MIN_INLIERS else None
+
+
+class NearbyFundamentals:
+    """The fundamental matrices of the `nearby_pairs` of a capture, fitted as the features of their
+    images arrive: the SIFT extraction fits them while COLMAP is still extracting (`add` from its
+    watch), so that the focal check costs next to nothing after it."""
+
+    def __init__(self, names: list[str], *, seed: int = 0) -> None:
+        self.pairs, self.seed = nearby_pairs(names), seed
+        self.found: dict[tuple[str, str], np.ndarray | None] = {}
+
+    def add(self, read: Callable[[str], Features], ready: Container[str]) -> None:
+        """Fit the pairs not fitted yet whose two images are `ready` (`read` gives their features,
+        the strongest `NUM_KEYPOINTS` first). On one thread: beside COLMAP's extraction, which keeps
+        every core busy, threaded BLAS and RANSAC only spin (twice the CPU time, measured), and the
+        matches do not change with the machine's number of cores."""
+        held: dict[str, Features] = {}
+        with threadpool_limits(1):
+            for a, b in self.pairs:
+                if (a, b) in self.found or a not in ready or b not in ready:
+                    continue
+                fa, fb = (held[n] if n in held else held.setdefault(n, read(n)) for n in (a, b))
+                self.found[(a, b)] = pair_fundamental(fa, fb, seed=self.seed)
+
+    def fundamentals(self, names: list[str], read: Callable[[str], Features]) -> list[np.ndarray]:
+        """The matrices of the nearby pairs of `names` (the images in the end: those set aside during
+        extraction change the pairs), fitting those still missing."""
+        self.pairs = nearby_pairs(names)
+        self.add(read, set(names))
+        return [F for F in (self.found[pair] for pair in self.pairs) if F is not None]
+
+
 def estimate_from_features(features_path: Path, names: list[str], width: int, height: int,
                            prior_px: float, *, seed: int = 0) -> FocalEstimate | None:
     """Match pairs near in name order (mutual nearest neighbours of the strongest features), fit a
     fundamental matrix to each, and estimate the shared focal length from them."""
-    fundamentals = []
     with FeatureCache(features_path, top_k=NUM_KEYPOINTS, capacity=8) as cache:
-        for a, b in nearby_pairs(names):
-            fa, fb = cache.get(a), cache.get(b)
-            matches = mutual_nearest_neighbours(fa.descriptors, fb.descriptors, NUM_MATCHES)[0]
-            found = colmap.estimate_fundamental(fa.keypoints[matches[:, 0]], fb.keypoints[matches[:, 1]],
-                                                max_error_px=MAX_ERROR_PX, max_trials=MAX_TRIALS, seed=seed)
-            if found is not None and found[1] >= MIN_INLIERS:
-                fundamentals.append(found[0])
+        fundamentals = NearbyFundamentals(names, seed=seed).fundamentals(names, cache.get)
     return estimate(fundamentals, width, height, prior_px)
