@@ -112,3 +112,25 @@ def test_beside_runs_the_step_when_poked_and_raises_its_error_in_the_caller():
         beside.poke()
         time.sleep(0.2)
         beside.poke()
+
+
+def test_the_copy_reads_the_database_a_few_images_at_a_time(scene_features, tmp_path, monkeypatch):
+    from sara.features.sift import DatabaseToH5
+
+    db = scene_features / "database.db"
+    read, original = [], colmap.read_sift_rows
+
+    def counting(*args, **kwargs):
+        found = original(*args, **kwargs)
+        read.append(len(found))
+        return found
+
+    monkeypatch.setattr(colmap, "read_sift_rows", counting)
+    monkeypatch.setattr(DatabaseToH5, "BATCH", 3)
+    with h5py.File(scene_features / "features-sift.h5", "r") as h5:
+        sizes = {n: tuple(int(v) for v in h5[n]["image_size"][()]) for n in h5}
+    with h5py.File(tmp_path / "copy.h5", "w") as h5:
+        copy = DatabaseToH5(db, h5, sizes)
+        assert sorted(copy.update()) == sorted(sizes)
+        assert copy.update() == []  # nothing new since
+    assert max(read) == 3 and sum(read) == len(sizes)

@@ -95,20 +95,21 @@ def count_with_keypoints(db_path: Path) -> int | None:
         return None
 
 
-def read_sift_rows(db_path: Path, known: Container[int] = ()) -> dict[str, tuple[int, np.ndarray, np.ndarray,
-                                                                                   np.ndarray]]:
+def read_sift_rows(db_path: Path, known: Container[int] = (), *, limit: int | None = None,
+                   ) -> dict[str, tuple[int, np.ndarray, np.ndarray, np.ndarray]]:
     """name -> (image_id, keypoints, scales, descriptors) as `FeatureReader.read_sift`, of the images
-    with keypoints and descriptors whose image_id is not in `known`. Read with SQLite alone, so also
-    from a database that COLMAP is writing in another process."""
+    with keypoints and descriptors whose image_id is not in `known` (at most `limit` of them, the
+    lowest ids first). Read with SQLite alone, so also from a database that COLMAP is writing in
+    another process."""
     import sqlite3
 
     con = sqlite3.connect(f"file:{db_path}?mode=ro", uri=True, timeout=5.0)
     try:
         ids = con.execute("SELECT image_id, name FROM images JOIN keypoints USING (image_id) "
-                          "JOIN descriptors USING (image_id)").fetchall()
-        new = {int(image_id): name for image_id, name in ids if int(image_id) not in known}
+                          "JOIN descriptors USING (image_id) ORDER BY image_id").fetchall()
+        new = [(int(image_id), name) for image_id, name in ids if int(image_id) not in known][:limit]
         out = {}
-        for image_id, name in new.items():
+        for image_id, name in new:
             (k_rows, k_data), = con.execute("SELECT rows, data FROM keypoints WHERE image_id = ?", (image_id,))
             (d_rows, d_data), = con.execute("SELECT rows, data FROM descriptors WHERE image_id = ?", (image_id,))
             kp = np.frombuffer(k_data, np.float32).reshape(k_rows, -1) if k_rows else np.zeros((0, 2), np.float32)

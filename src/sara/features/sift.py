@@ -74,6 +74,9 @@ class DatabaseToH5:
     ends. The database is read with SQLite alone, from this process while COLMAP writes in its own.
     """
 
+    #: images read from the database at once (a resumed run may find thousands there)
+    BATCH = 32
+
     def __init__(self, db_path: Path, h5: h5py.File, sizes: dict[str, tuple[int, int]]) -> None:
         self.db_path, self.h5, self.sizes = Path(db_path), h5, sizes
         self.counts: dict[str, int] = {}  # name -> keypoints, of the images copied
@@ -84,17 +87,18 @@ class DatabaseToH5:
         if not self.db_path.exists():
             return []
         new = []
-        for name, (image_id, kp, scale, desc) in sorted(colmap.read_sift_rows(self.db_path, self._ids).items()):
-            self._ids.add(image_id)
-            if name not in self.sizes:
-                continue
-            # HDF5 crashes on a full disk: make sure the image fits before writing it
-            ensure_free_space(self.db_path.parent, len(kp) * (8 + 4 + 2 * desc.shape[-1]) + 4096)
-            write_features(self.h5, name, Features(keypoints=colmap.colmap_to_hloc_keypoints(kp),
-                                                   descriptors=hloc_descriptors(desc), scores=scale,
-                                                   image_size=self.sizes[name]))
-            self.counts[name] = len(kp)
-            new.append(name)
+        while batch := colmap.read_sift_rows(self.db_path, self._ids, limit=self.BATCH):
+            for name, (image_id, kp, scale, desc) in batch.items():
+                self._ids.add(image_id)
+                if name not in self.sizes:
+                    continue
+                # HDF5 crashes on a full disk: make sure the image fits before writing it
+                ensure_free_space(self.db_path.parent, len(kp) * (8 + 4 + 2 * desc.shape[-1]) + 4096)
+                write_features(self.h5, name, Features(keypoints=colmap.colmap_to_hloc_keypoints(kp),
+                                                       descriptors=hloc_descriptors(desc), scores=scale,
+                                                       image_size=self.sizes[name]))
+                self.counts[name] = len(kp)
+                new.append(name)
         return new
 
     def read(self, name: str, top_k: int | None = None) -> Features:
