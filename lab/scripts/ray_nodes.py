@@ -16,7 +16,7 @@ extraction and matching on the executor too). So each configuration runs the pai
 One JSON line per configuration: wall time and the CPU time of the driver and its own workers
 (not Ray's) in the stage, the cluster's start excluded.
 
-    python lab/scripts/ray_nodes.py WORK --size 1000 [--repeat 2]
+    python lab/scripts/ray_nodes.py WORK --size 1000 [--repeat 2] [--skip-serial]
 """
 
 from __future__ import annotations
@@ -91,10 +91,12 @@ def main() -> None:
     ap.add_argument("work", type=Path, help="a scale_e2e.py WORK folder holding world-N/")
     ap.add_argument("--size", type=int, default=1000)
     ap.add_argument("--repeat", type=int, default=1)
+    ap.add_argument("--skip-serial", action="store_true", help="the serial run is the slowest by far")
     args = ap.parse_args()
     world, cores = args.work / f"world-{args.size}", os.cpu_count() or 2
     configs = [("serial", "serial", 1, 0), ("processes", "processes", 0, 0),
                ("ray, 1 node", "ray", 0, 1), ("ray, 2 nodes", "ray", 0, 2)]
+    configs = configs[1:] if args.skip_serial else configs
     reference = None
     for r in range(args.repeat):
         for label, executor, workers, nodes in configs:
