@@ -138,3 +138,33 @@ def test_the_copy_reads_the_database_a_few_images_at_a_time(scene_features, tmp_
         assert sorted(copy.update()) == sorted(sizes)
         assert copy.update() == []  # nothing new since
     assert max(read) == 3 and sum(read) == len(sizes)
+
+
+def test_images_are_numbered_in_name_order_with_their_features_and_frames(scene_features, tmp_path):
+    """COLMAP's extraction numbers the images as its threads finish them; the stage numbers them in
+    name order after, as an import in name order did (the mapper's ties follow the ids)."""
+    import pycolmap
+
+    db = tmp_path / "database.db"
+    shutil.copyfile(scene_features / "database.db", db)
+    ids = colmap.database_images(db)
+    assert list(ids) == sorted(ids) and sorted(ids.values()) == list(ids.values())  # what the stage left
+
+    def features_by_name() -> dict[str, np.ndarray]:
+        return {name: row[3] for name, row in colmap.read_sift_rows(db).items()}
+
+    names = sorted(ids)
+    colmap.rename_images(db, {ids[n]: f"tmp-{n}" for n in names})  # the ids in reverse name order
+    colmap.rename_images(db, {ids[n]: m for n, m in zip(names, reversed(names))})
+    before = features_by_name()
+    assert colmap.number_images_by_name(db) is True
+    after = colmap.database_images(db)
+    assert list(after) == names and [after[n] for n in names] == sorted(after.values())
+    assert all(np.array_equal(before[n], f) for n, f in features_by_name().items())
+    database = pycolmap.Database.open(str(db))
+    try:
+        frames = {f.frame_id: [d.id for d in f.data_ids] for f in database.read_all_frames()}
+        assert all(frames[im.frame_id] == [im.image_id] for im in database.read_all_images())
+    finally:
+        database.close()
+    assert colmap.number_images_by_name(db) is False  # in order now: nothing to do

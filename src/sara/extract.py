@@ -213,6 +213,7 @@ def _extract_sift(backend: ColmapSift, db_path: Path, h5_path: Path, images: Ima
         on_watch()  # what COLMAP wrote after the last look
         kept = [n for n in images.names if n not in failed]
         fundamentals = None if nearby is None else nearby.fundamentals(kept, strongest)
+    colmap.number_images_by_name(db_path)  # as they finished, COLMAP's threads numbered them
     return {n: copy.counts[n] for n in kept}, failed, fundamentals
 
 

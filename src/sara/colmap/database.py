@@ -12,6 +12,7 @@ import contextlib
 import os
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pycolmap
@@ -232,3 +233,51 @@ def delete_pairs_except(db_path: Path, keep: set[tuple[int, int]]) -> None:
             if (i, j) not in keep:
                 db.delete_matches(i, j)
                 db.delete_two_view_geometry(i, j)
+
+
+def number_images_by_name(db_path: Path) -> bool:
+    """Give the images of a database without matches their ids in name order, and their frames the
+    same order, as an import of the images in name order does. COLMAP's extraction, importing the
+    images as its threads finish them, numbers them in an order that changes from run to run, and
+    the mapper's ties follow the ids. Returns whether anything was renumbered."""
+    import sqlite3
+
+    con = sqlite3.connect(db_path)
+    try:
+        rows = con.execute("SELECT image_id, name FROM images").fetchall()
+        ids = sorted(image_id for image_id, _ in rows)
+        new = {old: ids[k] for k, (old, _) in enumerate(sorted(rows, key=lambda r: r[1]))}
+        if all(old == now for old, now in new.items()):
+            return False
+        if con.execute("SELECT COUNT(*) FROM matches").fetchone()[0]:
+            raise RuntimeError(f"{db_path}: images can be renumbered only before matching")
+        frames = dict(con.execute("SELECT data_id, frame_id FROM frame_data WHERE sensor_type = ?", (_CAMERA_SENSOR,)))
+        frame_new = {frames[old]: frames[now] for old, now in new.items() if old in frames and now in frames}
+        shift = max([*ids, *frames.values(), 0]) + 1
+        with con:
+            _renumber(con, new, shift, [("images", "image_id", ""), ("keypoints", "image_id", ""),
+                                        ("descriptors", "image_id", ""),
+                                        ("frame_data", "data_id", f" AND sensor_type = {_CAMERA_SENSOR}"),
+                                        ("pose_priors", "corr_data_id", f" AND corr_sensor_type = {_CAMERA_SENSOR}")])
+            _renumber(con, frame_new, shift, [("frames", "frame_id", ""), ("frame_data", "frame_id", "")])
+        return True
+    finally:
+        con.close()
+
+
+#: `sensor_type` of a camera in COLMAP's rig tables
+_CAMERA_SENSOR = 0
+
+
+def _renumber(con: Any, new: dict[int, int], shift: int, columns: list[tuple[str, str, str]]) -> None:
+    """Move ids old -> new in each (table, column, extra condition), through ids shifted past all
+    of them so that no two rows share an id on the way. Only the rows that change move: COLMAP's
+    threads finish the images nearly in order, and a row moved is its features copied."""
+    con.execute("CREATE TEMP TABLE IF NOT EXISTS renumber (old INTEGER PRIMARY KEY, new INTEGER)")
+    con.execute("DELETE FROM renumber")
+    con.executemany("INSERT INTO renumber VALUES (?, ?)", [(a, b) for a, b in new.items() if a != b])
+    for table, column, where in columns:
+        con.execute(f"UPDATE {table} SET {column} = {column} + ? WHERE {column} IN (SELECT old FROM renumber){where}",
+                    (shift,))
+        con.execute(f"UPDATE {table} SET {column} = (SELECT new FROM renumber WHERE old = {column} - ?) "
+                    f"WHERE {column} >= ?{where}", (shift, shift))
