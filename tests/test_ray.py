@@ -4,9 +4,9 @@ mid-run is replaced (its task runs again) and the run completes."""
 
 from __future__ import annotations
 
+import contextlib
 import os
 import shutil
-import socket
 import subprocess
 import sys
 from pathlib import Path
@@ -18,34 +18,18 @@ pytest.importorskip("ray")
 from sara.cli import main  # noqa: E402
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def _ray(*args: str, env: dict[str, str]) -> None:
-    ray_cli = Path(sys.executable).with_name("ray")
-    subprocess.run([str(ray_cli), *args], check=True, env=env, capture_output=True, timeout=180)
-
-
 @pytest.fixture(scope="module")
 def ray_cluster(tmp_path_factory):
     """A head node and a worker node on localhost, one CPU each; yields the head's address."""
-    temp = tmp_path_factory.mktemp("ray")
-    env = {**os.environ, "RAY_USAGE_STATS_ENABLED": "0"}
-    port = _free_port()
-    address = f"127.0.0.1:{port}"
-    common = ["--num-cpus=1", "--disable-usage-stats"]
+    from sara.execute_ray import local_cluster
+
+    stack = contextlib.ExitStack()
     try:
-        _ray("start", "--head", f"--port={port}", "--node-ip-address=127.0.0.1", "--include-dashboard=false",
-             f"--temp-dir={temp}", *common, env=env)
-        _ray("start", f"--address={address}", "--node-ip-address=127.0.0.1", *common, env=env)
+        address = stack.enter_context(local_cluster(2, 1, tmp_path_factory.mktemp("ray")))
     except (subprocess.CalledProcessError, subprocess.TimeoutExpired) as exc:
-        _ray("stop", "--force", env=env)
         pytest.fail(f"could not start a local Ray cluster: {exc}")
-    yield address
-    _ray("stop", "--force", env=env)
+    with stack:
+        yield address
 
 
 def test_ray_cluster_gives_the_serial_pairs(ray_cluster, synthetic_scene, scene_features, tmp_path: Path,

@@ -22,41 +22,18 @@ One JSON line per configuration: wall time and the CPU time of the driver and it
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import resource
-import socket
-import subprocess
 import sys
 import time
 from pathlib import Path
 
+from sara.execute_ray import local_cluster
+
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from scale_e2e import prepare_run_dir  # noqa: E402  (a sibling lab script)
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def _ray(*args: str, env: dict[str, str]) -> None:
-    ray_cli = Path(sys.executable).with_name("ray")
-    subprocess.run([str(ray_cli), *args], check=True, env=env, capture_output=True, timeout=180)
-
-
-def start_cluster(nodes: int, cpus: int, temp: Path) -> tuple[str, dict[str, str]]:
-    """`nodes` local Ray nodes sharing `cpus` CPUs; returns the head's address and the environment."""
-    env = {**os.environ, "RAY_USAGE_STATS_ENABLED": "0"}
-    port = _free_port()
-    address = f"127.0.0.1:{port}"
-    each = [f"--num-cpus={cpus // nodes}", "--disable-usage-stats"]
-    _ray("start", "--head", f"--port={port}", "--node-ip-address=127.0.0.1", "--include-dashboard=false",
-         f"--temp-dir={temp}", *each, env=env)
-    for _ in range(nodes - 1):
-        _ray("start", f"--address={address}", "--node-ip-address=127.0.0.1", *each, env=env)
-    return address, env
 
 
 def pairs_stage(world: Path, run_dir: Path, executor: str, workers: int, address: str = "") -> dict:
@@ -101,14 +78,9 @@ def main() -> None:
     for r in range(args.repeat):
         for label, executor, workers, nodes in configs:
             run_dir = args.work / f"ray-run-{args.size}"
-            address, env = "", None
-            if nodes:
-                address, env = start_cluster(nodes, cores, args.work / "ray-tmp")
-            try:
+            with local_cluster(nodes, cores // nodes, args.work / "ray-tmp") if nodes else \
+                    contextlib.nullcontext("") as address:
                 found = pairs_stage(world, run_dir, executor, workers, address)
-            finally:
-                if env is not None:
-                    _ray("stop", "--force", env=env)
             reference = reference if reference is not None else found["pairs"]
             print(json.dumps({"N": args.size, "round": r, "executor": label, "nodes": nodes or None,
                               "wall_s": round(found["wall_s"], 2), "driver_cpu_s": round(found["driver_cpu_s"], 2),

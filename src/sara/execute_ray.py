@@ -12,8 +12,14 @@ that cluster.
 
 from __future__ import annotations
 
+import contextlib
 import logging
+import os
+import socket
+import subprocess
+import sys
 from collections.abc import Callable, Iterator, Sequence
+from pathlib import Path
 from typing import Any
 
 from .weights import MissingExtraError
@@ -81,3 +87,30 @@ class RayExecutor:
 
 def make(workers: int, address: str) -> RayExecutor:
     return RayExecutor(workers, address)
+
+
+@contextlib.contextmanager
+def local_cluster(nodes: int, cpus_per_node: int, temp_dir: Path) -> Iterator[str]:
+    """`nodes` Ray nodes on this machine (`ray start --head`, then nodes joined to it), stopped on
+    leaving the block, also when a start failed; yields the head's address for `ray_address`. For
+    tests and measurements: nodes on one machine share its cores."""
+    env = {**os.environ, "RAY_USAGE_STATS_ENABLED": "0"}
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    address = f"127.0.0.1:{port}"
+    each = [f"--num-cpus={cpus_per_node}", "--disable-usage-stats"]
+    try:
+        _ray_cli("start", "--head", f"--port={port}", "--node-ip-address=127.0.0.1", "--include-dashboard=false",
+                 f"--temp-dir={temp_dir}", *each, env=env)
+        for _ in range(nodes - 1):
+            _ray_cli("start", f"--address={address}", "--node-ip-address=127.0.0.1", *each, env=env)
+        yield address
+    finally:
+        _ray_cli("stop", "--force", env=env)
+
+
+def _ray_cli(*args: str, env: dict[str, str]) -> None:
+    """The `ray` command beside this Python (the cluster extra installs it)."""
+    subprocess.run([str(Path(sys.executable).with_name("ray")), *args], check=True, env=env, capture_output=True,
+                   timeout=180)

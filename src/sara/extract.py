@@ -190,6 +190,7 @@ def _extract_sift(backend: ColmapSift, db_path: Path, h5_path: Path, images: Ima
             colmap.create_database(tmp)
     todo = sorted(set(images.names) - colmap.images_with_keypoints(db_path))
     nearby = focal.NearbyFundamentals(images.names) if wants_focal else None
+    priors_read = False
     with atomic_path(h5_path) as tmp, h5py.File(tmp, "w") as h5:
         copy = DatabaseToH5(db_path, h5, images.sizes)
 
@@ -197,10 +198,12 @@ def _extract_sift(backend: ColmapSift, db_path: Path, h5_path: Path, images: Ima
             return copy.read(name, focal.NUM_KEYPOINTS)
 
         def on_watch() -> None:
-            nonlocal nearby
+            nonlocal nearby, priors_read
             copy.update()
-            if nearby is not None and copy.counts and any(colmap.camera_priors(db_path).values()):
-                nearby = None  # the focal length came with the images (EXIF): nothing to check
+            if nearby is not None and copy.counts and not priors_read:  # the camera exists: once
+                priors_read = True
+                if any(colmap.camera_priors(db_path).values()):
+                    nearby = None  # the focal length came with the images (EXIF): nothing to check
             if nearby is not None:
                 nearby.add(strongest, copy.counts)
 

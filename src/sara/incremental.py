@@ -35,9 +35,9 @@ from . import colmap, extract
 from .config import ExtractConfig
 from .execute import Executor
 from .features import features_file_name, make_backend
-from .features.sift import hloc_descriptors, unreadable
+from .features.sift import DatabaseToH5, unreadable
 from .io import atomic_path, records
-from .io.h5 import Features, has_features, write_features
+from .io.h5 import has_features
 from .io.images import ImageSet, set_aside
 from .io.pairs import Pair, read_pairs
 
@@ -255,14 +255,7 @@ def _write_features(out_dir: Path, conf: ExtractConfig, images: ImageSet, change
                 for image in extracted["names"]:
                     _copy_group(added, new, image)
             return
-        with colmap.FeatureReader(db) as reader:
-            for image, image_id in sorted(reader.image_ids().items()):
-                if image in keep or image not in with_keypoints:
-                    continue
-                kp, scale, desc = reader.read_sift(image_id)
-                write_features(new, image, Features(keypoints=colmap.colmap_to_hloc_keypoints(kp),
-                                                    descriptors=hloc_descriptors(desc), scores=scale,
-                                                    image_size=images.sizes[image]))
+        DatabaseToH5(db, new, {image: images.sizes[image] for image in with_keypoints - keep}).update()
 
 
 def _copy_group(src: h5py.File, dst: h5py.File, name: str) -> None:
