@@ -43,7 +43,8 @@ def main(argv: list[str] | None = None) -> int:
     Called in-process (argv given) the caller's signal handlers are put back afterwards; as the
     `sara` command, an interruption ends the process at once with its code (`errors.exit_now`).
     """
-    args = build_parser().parse_args(argv)
+    argv = sys.argv[1:] if argv is None else argv
+    args = build_parser(argv).parse_args(argv)
     setup_logging(args.verbose, args.quiet)
     RECEIVED_SIGNALS.clear()
     previous = catch_termination() if getattr(args, "catch_signals", True) else {}

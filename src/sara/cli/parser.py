@@ -20,19 +20,31 @@ class ArgumentParser(argparse.ArgumentParser):
         self.exit(EXIT_USAGE, f"sara: error: {message} (see `{self.prog} --help`)\n")
 
 
-def build_parser() -> argparse.ArgumentParser:
-    """The `sara` parser; every command carries its handler (checked here: none can be missing)."""
+def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
+    """The `sara` parser; every command carries its handler (checked here: none can be missing).
+
+    Given the arguments to parse, only their command's parser is built when they name one: each
+    command's choices (presets, pair sources, export formats, bench methods) import their modules,
+    a tenth of a second or more that `sara extract` would otherwise pay for `sara bench`'s sake."""
     parser = ArgumentParser(prog="sara", description="Scene-aware pair selection for Structure-from-Motion, "
                                                      "and the COLMAP pipeline around it.")
     parser.add_argument("--version", action="version", version=f"sara {__version__}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    for add in (_add_run, _add_extract, _add_pairs, _add_match, _add_map, _add_evaluate, _add_export, _add_report,
-                _add_demo, _add_weights, _add_bench):
-        add(sub)
+    named = _command_named(argv)
+    for name, add in _COMMANDS.items():
+        if named in (None, name):
+            add(sub)
     missing = commands_without_handler(parser)
     if missing:
         raise RuntimeError(f"commands without a handler: {', '.join(missing)}")
     return parser
+
+
+def _command_named(argv: list[str] | None) -> str | None:
+    """The command `argv` names, or None (no arguments, an option first, an unknown word)."""
+    if not argv or argv[0] not in _COMMANDS:
+        return None
+    return argv[0]
 
 
 def subcommands(parser: argparse.ArgumentParser) -> dict[str, argparse.ArgumentParser]:
@@ -270,3 +282,9 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:
                         "that file names alone cause)")
     _add_output_options(p)
     p.set_defaults(handler=commands.cmd_bench)
+
+
+#: every command, in the order `sara --help` lists them, with the function that adds its parser
+_COMMANDS = {"run": _add_run, "extract": _add_extract, "pairs": _add_pairs, "match": _add_match, "map": _add_map,
+             "evaluate": _add_evaluate, "export": _add_export, "report": _add_report, "demo": _add_demo,
+             "weights": _add_weights, "bench": _add_bench}
