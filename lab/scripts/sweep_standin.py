@@ -8,7 +8,12 @@ model with the intrinsics scaled. It stands in for the geometry of a sweep (one 
 overlapping), not for a phone's optics (wide angle, rolling shutter, motion blur): on dtu-scan24 the
 views are about 12 degrees apart on a sphere, where a phone's video frames are a few degrees apart.
 
-    python lab/scripts/sweep_standin.py ../shared/data/dtu-scan24 DEST [--count 20] [--long-side 1008]
+    python lab/scripts/sweep_standin.py ../shared/data/dtu-scan24 DEST [--count 20] [--long-side 1008] [--radial K1]
+
+`--radial K1` adds a phone lens's radial distortion to every image: the pixel at normalised
+coordinates x (focal length 1, from the true intrinsics) shows what the undistorted image showed
+at u with x = u (1 + K1 |u|^2), COLMAP's SIMPLE_RADIAL model; the poses do not change, gt/ keeps the
+pinhole intrinsics, and the mapper has to find K1 itself.
 
 DEST gets images/, gt/ (COLMAP text) and SCENE.md (how it was made and which views).
 """
@@ -18,6 +23,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pycolmap
 from PIL import Image
@@ -33,6 +39,20 @@ def facing_views(gt: pycolmap.Reconstruction, count: int) -> list[int]:
     return sorted((ids[k] for k in order), key=lambda i: gt.images[i].name)
 
 
+def distorted(photo: Image.Image, fx: float, fy: float, cx: float, cy: float, k1: float) -> Image.Image:
+    """`photo` as a lens with radial distortion `k1` (SIMPLE_RADIAL) would have shown it."""
+    xs, ys = np.meshgrid(np.arange(photo.width) + 0.5, np.arange(photo.height) + 0.5)
+    xd, yd = (xs - cx) / fx, (ys - cy) / fy
+    xu, yu = xd.copy(), yd.copy()
+    for _ in range(20):  # x_u = x_d / (1 + k1 |x_u|^2), a contraction for the small k1 of a lens
+        factor = 1.0 + k1 * (xu * xu + yu * yu)
+        xu, yu = xd / factor, yd / factor
+    map_x = (xu * fx + cx - 0.5).astype(np.float32)
+    map_y = (yu * fy + cy - 0.5).astype(np.float32)
+    warped = cv2.remap(np.asarray(photo), map_x, map_y, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT)
+    return Image.fromarray(warped)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("scene", type=Path)
@@ -40,6 +60,7 @@ def main() -> None:
     parser.add_argument("--count", type=int, default=20)
     parser.add_argument("--long-side", type=int, default=1008)
     parser.add_argument("--quality", type=int, default=90)
+    parser.add_argument("--radial", type=float, default=0.0, help="radial distortion K1 to add (default none)")
     args = parser.parse_args()
     gt = pycolmap.Reconstruction()
     gt.read_text(str(args.scene / "gt"))
@@ -53,9 +74,11 @@ def main() -> None:
         scale = args.long_side / max(photo.size)
         photo = photo.resize((round(photo.width * scale), round(photo.height * scale)), Image.LANCZOS)
         name = Path(image.name).with_suffix(".jpg").name
-        photo.save(args.dest / "images" / name, quality=args.quality)
         sx, sy = photo.width / gt.cameras[image.camera_id].width, photo.height / gt.cameras[image.camera_id].height
         fx, fy, cx, cy = gt.cameras[image.camera_id].params[:4]
+        if args.radial:
+            photo = distorted(photo, fx * sx, fy * sy, cx * sx, cy * sy, args.radial)
+        photo.save(args.dest / "images" / name, quality=args.quality)
         params = f"{fx * sx:.6f} {fy * sy:.6f} {cx * sx:.6f} {cy * sy:.6f}"
         cameras.append(f"{k} PINHOLE {photo.width} {photo.height} {params}")
         pose = image.cam_from_world()
@@ -68,7 +91,8 @@ def main() -> None:
     (args.dest / "SCENE.md").write_text(
         f"Forward-facing sweep stand-in of {args.scene.name} (lab/scripts/sweep_standin.py): the {args.count} "
         f"views whose optical axes are closest to the mean axis, resized to a long side of {args.long_side} px, "
-        f"JPEG quality {args.quality}; one PINHOLE camera per image in gt/, intrinsics scaled.\n"
+        f"JPEG quality {args.quality}; one PINHOLE camera per image in gt/, intrinsics scaled"
+        + (f"; radial distortion K1 = {args.radial} added (SIMPLE_RADIAL), not in gt/" if args.radial else "") + ".\n"
         "views: " + " ".join(gt.images[i].name for i in chosen) + "\n")
 
 
