@@ -40,6 +40,47 @@ def test_repair_pairs_rank_by_the_inliers_among_all_matches(tmp_path: Path):
     assert repair_pairs(path, pairs=[("a", "b")], main={"a", "b"}, left_out=["c"], per_view=1) == [("b", "c")]
 
 
+def test_repair_pairs_rank_by_the_scores_given_again(tmp_path: Path):
+    """The round's ratio-tested scores replace the first ones for the pairs they cover, a pair the
+    first scoring found no model for included; the others keep their first score."""
+    path = _scores(tmp_path / "scores.csv", [
+        ("a", "c", 14, "few_inliers"), ("b", "c", 9, "few_inliers"), ("a", "d", 3, "no_model"), ("b", "d", 8, "few_inliers"),
+    ])
+    asked: list = []
+
+    def rescore(pairs):
+        asked.append(pairs)
+        return {("b", "c"): 60, ("a", "d"): 30}
+
+    extra = repair_pairs(path, pairs=[("a", "b")], main={"a", "b"}, left_out=["c", "d"], per_view=1, rescore=rescore)
+    assert extra == [("a", "d"), ("b", "c")]
+    assert asked == [[("a", "c"), ("a", "d"), ("b", "c"), ("b", "d")]]  # once, every candidate of the views
+    assert repair_pairs(path, pairs=[("a", "b")], main={"a", "b"}, left_out=["c", "d"], per_view=1) == [
+        ("a", "c"), ("b", "d")]
+
+
+def test_the_repair_scores_again_with_the_ratio_test(monkeypatch, tmp_path: Path):
+    from types import SimpleNamespace
+
+    from sara import scoring
+    from sara.config import make_config
+    from sara.pairs.sara import rounds as sara_rounds
+
+    seen = {}
+
+    def fake_score_pairs(pairs, features, db, conf, **kwargs):
+        seen["ratio"] = conf.max_descriptor_ratio
+        return SimpleNamespace(num_inliers_all=[7 * (k + 1) for k in range(len(pairs))])
+
+    monkeypatch.setattr(scoring, "score_pairs", fake_score_pairs)
+    ctx = SimpleNamespace(conf=make_config("sift-offline"), features_path=tmp_path / "f.h5", db_path=tmp_path / "d.db",
+                          executor=None)
+    assert sara_rounds._ratio_rescore(ctx)([("a", "b"), ("a", "c")]) == {("a", "b"): 7, ("a", "c"): 14}
+    assert seen["ratio"] == 0.8 and ctx.conf.score.max_descriptor_ratio == 1.0  # the selection's scores: untouched
+    ctx.conf = make_config("sift-offline", {"rounds.repair_descriptor_ratio": 1.0})
+    assert sara_rounds._ratio_rescore(ctx) is None
+
+
 def test_a_repair_that_leaves_most_of_its_views_out_is_not_repeated(tmp_path: Path, monkeypatch):
     from types import SimpleNamespace
 
@@ -49,7 +90,7 @@ def test_a_repair_that_leaves_most_of_its_views_out_is_not_repeated(tmp_path: Pa
     registered = {"a", "b", "c"}
     monkeypatch.setattr(sara_source.colmap, "registered_images", lambda model_dir: set(registered))
 
-    def fake_repair(scores, pairs, main, left_out, per_view):  # the first unmatched link into the model
+    def fake_repair(scores, pairs, main, left_out, per_view, rescore=None):  # the first unmatched link into the model
         done = {tuple(sorted(p)) for p in pairs}
         return [next(p for p in (tuple(sorted((m, v))) for m in sorted(main)) if p not in done) for v in left_out]
 
@@ -128,7 +169,7 @@ def test_views_a_repair_left_out_get_the_fill_round_once_then_the_pose_guided_on
     # a repair that finds no candidate into the model (not stalled) leads to the fill round too
     registered.difference_update({"d", "e"})
     monkeypatch.setattr(sara_source, "_repair_stalled", lambda ctx, key, pairs, left_out: False)
-    monkeypatch.setattr(sara_source, "repair_pairs", lambda scores, pairs, main, left_out, per_view: [])
+    monkeypatch.setattr(sara_source, "repair_pairs", lambda scores, pairs, main, left_out, per_view, rescore=None: [])
     assert sara_source.after_mapping(ctx, tree, model).role == "fill"
 
 

@@ -205,6 +205,12 @@ class RoundsConfig:
         candidates per left-out view), else runs the pose-guided round once: 3 rounds leave room for a repair
         before and after it.""")
     repair_pairs_per_view: int = option(3, ints(1), "Most candidates a repair round adds per left-out view.")
+    repair_descriptor_ratio: float = option(0.8, reals(0, 1, low_open=True), """A repair round ranks a
+        left-out view's candidates after scoring them again with Lowe's ratio test at this ratio
+        (score.max_descriptor_ratio; 1: ranked by the first scores). Across a wide baseline the scorer's b most
+        similar matches are mostly wrong, so its pose and inlier counts are noise (7-14 inliers on pairs that a
+        full matching verifies with 15-159, 8-16 on pairs it does not); among matches that pass the ratio test
+        the pose is found (lab/notes/CAPTURES.md, section 10). Only runs that leave views out are touched.""")
     max_time_fraction: float = option(0.0, reals(0), """The rounds after the first model may take at most this
         fraction of the first round's match + map time (0, the default: no limit): each round's pairs are cut to
         what its matching may take at the first round's matching rate, and no round starts once the time is

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import logging
 from collections import defaultdict
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -42,21 +43,31 @@ def left_out_views(names: list[str], pairs: list[Pair], main: set[str]) -> list[
 
 
 def repair_pairs(scores_csv: Path, pairs: list[Pair], main: set[str], left_out: list[str],
-                 per_view: int) -> list[Pair]:
+                 per_view: int, rescore: Callable[[list[Pair]], dict[Pair, int]] | None = None) -> list[Pair]:
     """For each left-out view, its best unselected candidates into the main model: by the RANSAC
     pose's inliers among all mutual matches (`num_inliers_all`, which does not saturate at the b
-    best matches and predicts a full matching's inliers better)."""
+    best matches and predicts a full matching's inliers better).
+
+    `rescore(pairs)` gives that count anew for the candidates of the left-out views (pair -> inliers;
+    the round's ratio-tested scoring); a pair it leaves out keeps its first score."""
     chosen = {tuple(sorted(p)) for p in pairs}
     targets = set(left_out)
-    options: dict[str, list[tuple[int, Pair]]] = defaultdict(list)
+    found: list[tuple[str, int, Pair]] = []
     scores, _ = read_scores_csv(scores_csv)
     for k, (a, b) in enumerate(zip(scores.name0, scores.name1)):
         pair = tuple(sorted((a, b)))
-        if pair in chosen or scores.reason[k] == "no_model":
+        if pair in chosen:
             continue
         for view, other in ((a, b), (b, a)):
             if view in targets and other in main:
-                options[view].append((int(scores.num_inliers_all[k]), pair))
+                found.append((view, k, pair))
+    again = rescore(sorted({pair for _, _, pair in found})) if rescore is not None and found else {}
+    options: dict[str, list[tuple[int, Pair]]] = defaultdict(list)
+    for view, k, pair in found:
+        if pair in again:
+            options[view].append((again[pair], pair))
+        elif scores.reason[k] != "no_model":
+            options[view].append((int(scores.num_inliers_all[k]), pair))
     extra: list[Pair] = []
     for view in left_out:
         ranked = sorted(options[view], key=lambda item: (-item[0], item[1]))

@@ -14,6 +14,8 @@ Every round takes its pairs from the one ledger, `budget.PairBudget`.
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -78,7 +80,8 @@ def after_mapping(ctx: PairContext, pairs: list[Pair], model_dir: Path) -> Round
     left_out = left_out_views(ctx.names, pairs, main)
     key = _selection_key(ctx) if left_out else ""
     if left_out and not _repair_stalled(ctx, key, pairs, left_out):
-        extra = repair_pairs(ctx.out_dir / SCORES_NAME, pairs, main, left_out, ctx.conf.rounds.repair_pairs_per_view)
+        extra = repair_pairs(ctx.out_dir / SCORES_NAME, pairs, main, left_out, ctx.conf.rounds.repair_pairs_per_view,
+                             rescore=_ratio_rescore(ctx))
         room = budget_of(ctx).repair(len(pairs), len(left_out))
         extra = extra[:room] if len(extra) > room else extra
         if extra:
@@ -90,6 +93,26 @@ def after_mapping(ctx: PairContext, pairs: list[Pair], model_dir: Path) -> Round
     if left_out and (extra := fill_round(ctx, pairs, key, len(left_out))):
         return Round(extra, "fill")
     return Round(pose_guided_round(ctx, pairs, model_dir), "pose-guided")
+
+
+def _ratio_rescore(ctx: PairContext) -> Callable[[list[Pair]], dict[Pair, int]] | None:
+    """The repair's scoring of candidates with Lowe's ratio test (`rounds.repair_descriptor_ratio`):
+    pair -> inliers of its pose among all mutual matches; None when the ratio is 1 (off)."""
+    ratio = ctx.conf.rounds.repair_descriptor_ratio
+    if ratio >= 1.0:
+        return None
+
+    def rescore(candidates: list[Pair]) -> dict[Pair, int]:
+        from ... import scoring
+
+        conf = replace(ctx.conf.score, max_descriptor_ratio=ratio)
+        scores = scoring.score_pairs(candidates, ctx.features_path, ctx.db_path, conf, executor=ctx.executor,
+                                     progress=False, seed=ctx.conf.seed)
+        logger.info("repair: %d candidates of the left-out views scored again with a ratio test of %.2f",
+                    len(candidates), ratio)
+        return {pair: int(n) for pair, n in zip(candidates, scores.num_inliers_all)}
+
+    return rescore
 
 
 def fill_round(ctx: PairContext, pairs: list[Pair], key: str, num_left_out: int) -> list[Pair]:
