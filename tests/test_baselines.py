@@ -205,3 +205,23 @@ def test_baseline_pairs_do_not_depend_on_saras_own_settings():
     retrieval = make_config("sift-offline", {"pairs.method": "retrieval"})
     assert pairs_key(retrieval, "x", None) != pairs_key(
         make_config("sift-offline", {"pairs.method": "retrieval", "retrieval.num_neighbors": 5}), "x", None)
+
+
+def test_a_setting_added_later_keys_the_pairs_only_away_from_its_default():
+    """A finished run keeps its key (and is not redone) when a release adds a setting at its default;
+    setting it otherwise redoes the pairs."""
+    from sara.config import make_config
+    from sara.io import fingerprint
+    from sara.pipeline import pairs_key
+    from sara.pipeline.pairs_stage import ADDED_LATER, source_sections
+
+    conf = make_config("sift-offline")
+    before = {"extract": "x", "seed": conf.seed}  # the key as a release without the added settings made it
+    for section in source_sections(conf):
+        values = dict(getattr(conf, section).__dict__)
+        for name in ADDED_LATER.get(section, {}):
+            del values[name]
+        before[section] = values
+    assert pairs_key(conf, "x", None) == fingerprint(before)
+    off = make_config("sift-offline", {"rounds.repair_descriptor_ratio": 1.0})
+    assert pairs_key(off, "x", None) != pairs_key(conf, "x", None)

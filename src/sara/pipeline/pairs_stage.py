@@ -52,9 +52,19 @@ def source_sections(conf: PipelineConfig) -> tuple[str, ...]:
     return get_source(method).sections(conf) if method in SOURCES else ("pairs",)
 
 
+#: settings added after runs were made: left out of the key at these values, so that a finished
+#: run is not redone for a setting it could not have had (it keeps what it found)
+ADDED_LATER: dict[str, dict[str, Any]] = {"rounds": {"repair_descriptor_ratio": 0.8}}
+
+
+def _keyed(section: str, values: dict[str, Any]) -> dict[str, Any]:
+    later = ADDED_LATER.get(section, {})
+    return {k: v for k, v in values.items() if not (k in later and v == later[k])}
+
+
 def pairs_key(conf: PipelineConfig, extract_key: str, source_file: Path | None) -> str:
     data: dict[str, Any] = {"extract": extract_key, "seed": conf.seed}
-    data.update({section: getattr(conf, section).__dict__ for section in source_sections(conf)})
+    data.update({section: _keyed(section, getattr(conf, section).__dict__) for section in source_sections(conf)})
     if source_file is not None:
         data["file"] = source_file.read_text(encoding="utf-8", errors="replace")
     return fingerprint(data)
