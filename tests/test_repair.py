@@ -44,7 +44,8 @@ def test_repair_pairs_rank_by_the_scores_given_again(tmp_path: Path):
     """The round's ratio-tested scores replace the first ones for the pairs they cover, a pair the
     first scoring found no model for included; the others keep their first score."""
     path = _scores(tmp_path / "scores.csv", [
-        ("a", "c", 14, "few_inliers"), ("b", "c", 9, "few_inliers"), ("a", "d", 3, "no_model"), ("b", "d", 8, "few_inliers"),
+        ("a", "c", 14, "few_inliers"), ("b", "c", 9, "few_inliers"),
+        ("a", "d", 3, "no_model"), ("b", "d", 8, "few_inliers"),
     ])
     asked: list = []
 
