@@ -1,0 +1,130 @@
+"""How often COLMAP's incremental mapper runs its global bundle adjustment, against time and accuracy
+on a synthetic street world (issue 31: mapping is most of the wait at 1,000 images and more).
+
+COLMAP adjusts the whole model each time the registered views (or points) grew by
+`ba_global_frames_ratio` (`ba_global_points_ratio`), 1.1 by default, or by 500 views: about
+ln(N / N0) / ln(1.1) global adjustments of a growing model, their cost summing to about
+N / (1 - 1 / 1.1) = 11 N view-adjustments. This script maps one matched database under several
+ratios, each in its own subprocess, and scores each model against the world's true poses.
+
+    python lab/scripts/mapper_schedule.py WORK --size 1000 --method sequential --ratios 1.1,1.4
+
+WORK is shared with `scale_e2e.py` (the same `world-N/`). The pairs are selected and matched once
+(`WORK/sched-N-METHOD/`, the first round only for SARA); each mapping writes
+`WORK/sched-N-METHOD/map-rRATIO-sSEED/` and appends one JSON line to `WORK/schedule.jsonl`
+(a finished variant is skipped, so a stopped run resumes).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import resource
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from scale_e2e import METHODS, ensure_world, evaluate, prepare_run_dir  # noqa: E402  (a sibling lab script)
+
+RESULTS = "schedule.jsonl"
+
+
+def matched(world_dir: Path, run_dir: Path, method: str) -> dict:
+    """The method's pairs selected and matched in `run_dir` (once); their counts and times."""
+    done = run_dir / "matched.json"
+    if done.exists():
+        return json.loads(done.read_text())
+    from sara.bench.world import image_set
+    from sara.config import make_config
+    from sara.execute import make_executor
+    from sara.pipeline import match_pairs, select_pairs
+
+    conf = make_config(overrides=METHODS[method])
+    prepare_run_dir(world_dir, run_dir)
+    images = dataclasses.replace(image_set(world_dir), root=run_dir / "images")
+    executor = make_executor(conf.execute.executor, conf.execute.workers, conf.execute.ray_address)
+    tic = time.perf_counter()
+    pairs_path = select_pairs(conf, images, run_dir / "features-sift.h5", run_dir, executor=executor, progress=False)
+    t_pairs = time.perf_counter() - tic
+    work = match_pairs(conf, pairs_path, run_dir / "features-sift.h5", run_dir, executor=executor,
+                       progress=False, beside=True)
+    executor.close()
+    if Path(work) != run_dir / "database.db":
+        os.replace(work, run_dir / "database.db")
+    info = {"pairs": sum(1 for ln in pairs_path.open() if ln.strip()), "pairs_s": t_pairs,
+            "match_s": time.perf_counter() - tic - t_pairs}
+    done.write_text(json.dumps(info))
+    return info
+
+
+def child_map(db: Path, out: Path, ratio: float, seed: int) -> None:
+    """One mapping of `db` with sara's mapper settings and the global adjustment every `ratio` growth."""
+    import pycolmap
+
+    from sara.colmap import sfm
+    from sara.config import make_config
+
+    conf = make_config().map
+    opts = pycolmap.IncrementalPipelineOptions()
+    opts.min_model_size = conf.min_model_size
+    opts.mapper.abs_pose_min_num_inliers = conf.abs_pose_min_num_inliers
+    opts.mapper.abs_pose_min_inlier_ratio = conf.abs_pose_min_inlier_ratio
+    opts.random_seed = opts.mapper.random_seed = opts.triangulation.random_seed = seed
+    opts.ba_global_frames_ratio = opts.ba_global_points_ratio = ratio
+    out.mkdir(parents=True, exist_ok=True)
+    tic, cpu0 = time.perf_counter(), resource.getrusage(resource.RUSAGE_SELF)
+    recs = pycolmap.incremental_mapping(str(db), str(out / "images"), str(out / "raw"), options=opts)
+    wall, cpu1 = time.perf_counter() - tic, resource.getrusage(resource.RUSAGE_SELF)
+    sizes = sfm.write_models_by_size(out / "sparse", recs)
+    (out / "child.json").write_text(json.dumps({
+        "map_s": wall, "map_cpu_s": cpu1.ru_utime + cpu1.ru_stime - cpu0.ru_utime - cpu0.ru_stime,
+        "peak_rss_gib": cpu1.ru_maxrss / 1024**2, "model_sizes": sizes}))
+
+
+def main() -> None:
+    if sys.argv[1:2] == ["--child"]:
+        db, out, ratio, seed = sys.argv[2:6]
+        child_map(Path(db), Path(out), float(ratio), int(seed))
+        return
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("work", type=Path)
+    ap.add_argument("--size", type=int, default=1000)
+    ap.add_argument("--method", default="sequential", choices=[m for m in METHODS if "global" not in m])
+    ap.add_argument("--ratios", default="1.1,1.4")
+    ap.add_argument("--seeds", default="0")
+    args = ap.parse_args()
+    world_dir = ensure_world(args.work, args.size)
+    run_dir = args.work / f"sched-{args.size}-{args.method}"
+    info = matched(world_dir, run_dir, args.method)
+    results = args.work / RESULTS
+    done = {(r["N"], r["method"], r["ratio"], r["seed"]) for r in map(json.loads, results.read_text().splitlines())} \
+        if results.exists() else set()
+    for seed in (int(s) for s in args.seeds.split(",")):
+        for ratio in (float(r) for r in args.ratios.split(",")):
+            if (args.size, args.method, ratio, seed) in done:
+                continue
+            out = run_dir / f"map-r{ratio}-s{seed}"
+            log = out.with_suffix(".log")
+            with open(log, "w") as fh:
+                proc = subprocess.run([sys.executable, __file__, "--child", str(run_dir / "database.db"), str(out),
+                                       str(ratio), str(seed)], stdout=fh, stderr=subprocess.STDOUT)
+            row = {"N": args.size, "method": args.method, "ratio": ratio, "seed": seed, **info,
+                   "returncode": proc.returncode, "started": time.strftime("%Y-%m-%d %H:%M:%S")}
+            if proc.returncode == 0:
+                row.update(json.loads((out / "child.json").read_text()))
+                row["eval"] = evaluate(out, world_dir / "gt")
+            with results.open("a") as fh:
+                fh.write(json.dumps(row) + "\n")
+            ev = row.get("eval", {})
+            print(f"N={args.size} {args.method} ratio {ratio} seed {seed}: map {row.get('map_s', 0):.0f} s "
+                  f"(CPU {row.get('map_cpu_s', 0):.0f} s), registered {ev.get('num_registered')} in "
+                  f"{ev.get('num_components')} models, AUC@1/5 {ev.get('auc', {}).get('1')} / "
+                  f"{ev.get('auc', {}).get('5')}", flush=True)
+
+
+if __name__ == "__main__":
+    main()
