@@ -75,7 +75,8 @@ def child_map(db: Path, out: Path, ratio: float, seed: int) -> None:
     opts.mapper.abs_pose_min_inlier_ratio = conf.abs_pose_min_inlier_ratio
     opts.random_seed = opts.mapper.random_seed = opts.triangulation.random_seed = seed
     opts.ba_global_frames_ratio = opts.ba_global_points_ratio = ratio
-    out.mkdir(parents=True, exist_ok=True)
+    for sub in ("images", "raw"):
+        (out / sub).mkdir(parents=True, exist_ok=True)
     tic, cpu0 = time.perf_counter(), resource.getrusage(resource.RUSAGE_SELF)
     recs = pycolmap.incremental_mapping(str(db), str(out / "images"), str(out / "raw"), options=opts)
     wall, cpu1 = time.perf_counter() - tic, resource.getrusage(resource.RUSAGE_SELF)
@@ -101,14 +102,14 @@ def main() -> None:
     run_dir = args.work / f"sched-{args.size}-{args.method}"
     info = matched(world_dir, run_dir, args.method)
     results = args.work / RESULTS
-    done = {(r["N"], r["method"], r["ratio"], r["seed"]) for r in map(json.loads, results.read_text().splitlines())} \
-        if results.exists() else set()
+    rows = map(json.loads, results.read_text().splitlines()) if results.exists() else []
+    done = {(r["N"], r["method"], r["ratio"], r["seed"]) for r in rows if r["returncode"] == 0}
     for seed in (int(s) for s in args.seeds.split(",")):
         for ratio in (float(r) for r in args.ratios.split(",")):
             if (args.size, args.method, ratio, seed) in done:
                 continue
             out = run_dir / f"map-r{ratio}-s{seed}"
-            log = out.with_suffix(".log")
+            log = out.with_name(out.name + ".log")
             with open(log, "w") as fh:
                 proc = subprocess.run([sys.executable, __file__, "--child", str(run_dir / "database.db"), str(out),
                                        str(ratio), str(seed)], stdout=fh, stderr=subprocess.STDOUT)
