@@ -75,7 +75,7 @@ def child_map(db: Path, out: Path, ratio: float, seed: int) -> None:
     opts.mapper.abs_pose_min_inlier_ratio = conf.abs_pose_min_inlier_ratio
     opts.random_seed = opts.mapper.random_seed = opts.triangulation.random_seed = seed
     opts.ba_global_frames_ratio = opts.ba_global_points_ratio = ratio
-    for sub in ("images", "raw"):
+    for sub in ("images", "raw", "sparse"):
         (out / sub).mkdir(parents=True, exist_ok=True)
     tic, cpu0 = time.perf_counter(), resource.getrusage(resource.RUSAGE_SELF)
     recs = pycolmap.incremental_mapping(str(db), str(out / "images"), str(out / "raw"), options=opts)
