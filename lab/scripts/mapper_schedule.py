@@ -62,25 +62,20 @@ def matched(world_dir: Path, run_dir: Path, method: str) -> dict:
 
 
 def child_map(db: Path, out: Path, ratio: float, seed: int) -> None:
-    """One mapping of `db` with sara's mapper settings and the global adjustment every `ratio` growth."""
-    import pycolmap
-
+    """One mapping of `db` by sara's mapper call and settings, the global adjustment every `ratio` growth."""
     from sara.colmap import sfm
     from sara.config import make_config
 
     conf = make_config().map
-    opts = pycolmap.IncrementalPipelineOptions()
-    opts.min_model_size = conf.min_model_size
-    opts.mapper.abs_pose_min_num_inliers = conf.abs_pose_min_num_inliers
-    opts.mapper.abs_pose_min_inlier_ratio = conf.abs_pose_min_inlier_ratio
-    opts.random_seed = opts.mapper.random_seed = opts.triangulation.random_seed = seed
-    opts.ba_global_frames_ratio = opts.ba_global_points_ratio = ratio
     for sub in ("images", "raw", "sparse"):
         (out / sub).mkdir(parents=True, exist_ok=True)
     tic, cpu0 = time.perf_counter(), resource.getrusage(resource.RUSAGE_SELF)
-    recs = pycolmap.incremental_mapping(str(db), str(out / "images"), str(out / "raw"), options=opts)
+    mapped = sfm.incremental_mapping(
+        db, out / "images", out / "raw", seed=seed, min_model_size=conf.min_model_size,
+        abs_pose_min_num_inliers=conf.abs_pose_min_num_inliers,
+        abs_pose_min_inlier_ratio=conf.abs_pose_min_inlier_ratio, ba_global_ratio=ratio)
     wall, cpu1 = time.perf_counter() - tic, resource.getrusage(resource.RUSAGE_SELF)
-    sizes = sfm.write_models_by_size(out / "sparse", recs)
+    sizes = mapped.write_by_size(out / "sparse")
     (out / "child.json").write_text(json.dumps({
         "map_s": wall, "map_cpu_s": cpu1.ru_utime + cpu1.ru_stime - cpu0.ru_utime - cpu0.ru_stime,
         "peak_rss_gib": cpu1.ru_maxrss / 1024**2, "model_sizes": sizes}))

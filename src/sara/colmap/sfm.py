@@ -45,7 +45,7 @@ def incremental_mapping(
     db_path: Path, image_dir: Path, out_dir: Path, *, seed: int, min_model_size: int,
     abs_pose_min_num_inliers: int, abs_pose_min_inlier_ratio: float, num_threads: int = -1,
     on_next_image: Callable[[], None] | None = None, input_path: Path | None = None,
-    forward_start: bool = False,
+    forward_start: bool = False, ba_global_ratio: float | None = None,
 ) -> MappedModels:
     """COLMAP's incremental mapper; with `input_path` it continues from that model (registers the
     images it lacks, then bundle-adjusts) instead of starting from an empty one.
@@ -53,10 +53,14 @@ def incremental_mapping(
     `forward_start` lets the mapper start from a pair of views that moved along the viewing
     direction: COLMAP refuses such a start (`init_max_forward_motion`, 0.95 of the baseline along
     the optical axis), so a camera driving or walking straight ahead never starts a model.
+    `ba_global_ratio`: adjust the whole model each time its views or points grew by this factor
+    (COLMAP's `ba_global_frames_ratio` and `ba_global_points_ratio`; None keeps COLMAP's 1.1).
     """
     opts = pycolmap.IncrementalPipelineOptions()
     if forward_start:
         opts.mapper.init_max_forward_motion = 1.0
+    if ba_global_ratio is not None:
+        opts.ba_global_frames_ratio = opts.ba_global_points_ratio = ba_global_ratio
     opts.min_model_size = min_model_size
     opts.num_threads = num_threads
     opts.mapper.abs_pose_min_num_inliers = abs_pose_min_num_inliers
