@@ -136,6 +136,11 @@ def shares(count: int) -> Rule:
     return ok, f"{count} non-negative numbers with a positive sum, e.g. 0.5,0.25,0.25"
 
 
+def growth() -> Rule:
+    """0 (chosen by the scene's size) or a growth factor above 1."""
+    return (lambda v: _is_real(v) and math.isfinite(v) and (v == 0 or v > 1)), "0 (by size) or a number > 1"
+
+
 def threads() -> Rule:
     """COLMAP's thread count: -1 (or 0) uses every core."""
     return ints(-1)

@@ -1,0 +1,52 @@
+"""The incremental mapper's global bundle-adjustment schedule: COLMAP's below `LARGE_SCENE_IMAGES`
+images, sparser from there, or the user's factor; and that it reaches pycolmap's options."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from sara.config import ConfigError, make_config
+
+
+@pytest.mark.parametrize("setting, num_images, expected", [
+    (0.0, 119, None),     # the shared scenes: COLMAP's own schedule
+    (0.0, 499, None),
+    (0.0, 500, 1.4),
+    (0.0, 10_000, 1.4),
+    (1.2, 50, 1.2),       # the user's factor at any size
+    (1.1, 3_000, 1.1),
+])
+def test_the_schedule_follows_the_size_unless_set(setting, num_images, expected):
+    from sara import mapping
+
+    conf = make_config("sift-offline", {"map.ba_global_growth": setting}).map
+    assert mapping.ba_global_growth(conf, num_images) == expected
+
+
+@pytest.mark.parametrize("bad", [1.0, 0.5, -1.0, float("nan")])
+def test_a_growth_that_never_grows_is_refused(bad):
+    with pytest.raises(ConfigError, match="ba_global_growth"):
+        make_config("sift-offline", {"map.ba_global_growth": bad})
+
+
+@pytest.mark.parametrize("num_images, expected", [(40, 1.1), (600, 1.4)])
+def test_the_map_stage_hands_the_schedule_to_pycolmap(monkeypatch, tmp_path: Path, num_images, expected):
+    """Through the map stage and sara's call of pycolmap, down to the options pycolmap receives."""
+    import pycolmap
+
+    from sara import colmap, mapping
+
+    seen: list = []
+
+    def fake_pycolmap_mapping(db, images, out, *, options, input_path, next_image_callback):
+        seen.append((options.ba_global_frames_ratio, options.ba_global_points_ratio))
+        return {}
+
+    monkeypatch.setattr(pycolmap, "incremental_mapping", fake_pycolmap_mapping)
+    monkeypatch.setattr(colmap, "database_images", lambda db: dict.fromkeys(range(num_images)))
+    monkeypatch.setattr(colmap, "verified_graph", lambda db, min_inliers: (0, 0, [], 0))
+    mapping._map(make_config("sift-offline", {}).map, tmp_path / "db", tmp_path, tmp_path, 0, False)
+    assert seen and all(frames == pytest.approx(expected) and points == pytest.approx(expected)
+                        for frames, points in seen)
