@@ -50,3 +50,17 @@ def test_the_map_stage_hands_the_schedule_to_pycolmap(monkeypatch, tmp_path: Pat
     mapping._map(make_config("sift-offline", {}).map, tmp_path / "db", tmp_path, tmp_path, 0, False)
     assert seen and all(frames == pytest.approx(expected) and points == pytest.approx(expected)
                         for frames, points in seen)
+
+
+def test_a_model_mapped_before_the_setting_existed_is_not_mapped_again():
+    """The default leaves the map stage's key as it was; a factor set by hand changes it."""
+    import dataclasses
+
+    from sara import mapping
+    from sara.io import fingerprint
+
+    conf = make_config("sift-offline", {}).map
+    before = {k: v for k, v in conf.__dict__.items() if k != "ba_global_growth"}
+    assert mapping.state_key(conf, 0, "up") == fingerprint({"conf": before, "seed": 0, "upstream": "up"})
+    by_hand = dataclasses.replace(conf, ba_global_growth=1.4)
+    assert mapping.state_key(by_hand, 0, "up") != mapping.state_key(conf, 0, "up")
