@@ -66,3 +66,43 @@ def test_concat_scores_keeps_order():
     assert both.weight.tolist() == [0.0, 0.0, 1.0]
     assert both.accepted.tolist() == [True, False, True]
     assert both.reason == ["", "few_inliers", ""]
+
+
+def _scored(pairs, accepted) -> PairScores:
+    n = len(pairs)
+    acc = np.array(accepted, bool)
+    return PairScores(name0=[a for a, _ in pairs], name1=[b for _, b in pairs], num_matches=np.full(n, 50),
+                      num_inliers=np.where(acc, 40, 9), overlap=np.ones(n), parallax_deg=np.full(n, 5.0),
+                      weight=acc.astype(float), accepted=acc, reason=["" if x else "few_inliers" for x in acc])
+
+
+def test_the_rejected_candidates_of_cut_off_views_are_scored_again_with_the_ratio_test(monkeypatch, tmp_path):
+    """Only rejected candidates touching a view outside the largest part are scored again, with
+    the repair's ratio; those it accepts replace their first scores, the rest are kept."""
+    from sara.config import make_config
+    from sara.pairs import PairContext
+    from sara.pairs.sara import source
+
+    names = ["a", "b", "c", "d"]
+    edges = np.array([[0, 1], [1, 2], [0, 3], [2, 3]], dtype=np.int64)
+    candidates = [(names[i], names[j]) for i, j in edges]
+    first = _scored(candidates, [True, True, False, False])  # view d (3) is cut off
+    labels = connected_components(4, edges[first.accepted])
+    seen: list = []
+
+    def fake_score(ctx, pairs, score_conf=None):
+        seen.append((pairs, score_conf.max_descriptor_ratio))
+        return _scored(pairs, [p == ("a", "d") for p in pairs])
+
+    monkeypatch.setattr(source, "_score", fake_score)
+    ctx = PairContext(names=names, images_root=tmp_path, features_path=tmp_path / "f.h5", db_path=tmp_path / "db",
+                      out_dir=tmp_path, conf=make_config("sift-offline", {}))
+    scores, accepted = source.rescore_outside(ctx, candidates, edges, labels, first)
+    assert seen == [([("a", "d"), ("c", "d")], 0.8)]
+    assert accepted == 1
+    assert scores.accepted.tolist() == [True, True, True, False] and scores.name1 == ["b", "c", "d", "d"]
+    # one part: nothing is scored again; the ratio at 1 turns it off
+    assert source.rescore_outside(ctx, candidates, edges, np.zeros(4, np.int64), first) == (first, 0)
+    off = PairContext(**{**ctx.__dict__, "conf": make_config("sift-offline", {"rounds.repair_descriptor_ratio": 1.0})})
+    assert source.rescore_outside(off, candidates, edges, labels, first) == (first, 0)
+    assert len(seen) == 1

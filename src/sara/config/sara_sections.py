@@ -210,7 +210,9 @@ class RoundsConfig:
         (score.max_descriptor_ratio; 1: ranked by the first scores). Across a wide baseline the scorer's b most
         similar matches are mostly wrong, so its pose and inlier counts are noise (7-14 inliers on pairs that a
         full matching verifies with 15-159, 8-16 on pairs it does not); among matches that pass the ratio test
-        the pose is found (lab/notes/CAPTURES.md, section 10). Only runs that leave views out are touched.""")
+        the pose is found (lab/notes/CAPTURES.md, section 10). The selection too scores the rejected
+        candidates of views cut off from its graph's largest part again at this ratio and keeps those it
+        accepts. Only runs that leave views out (of the selected graph or of the model) are touched.""")
     max_time_fraction: float = option(0.0, reals(0), """The rounds after the first model may take at most this
         fraction of the first round's match + map time (0, the default: no limit): each round's pairs are cut to
         what its matching may take at the first round's matching rate, and no round starts once the time is

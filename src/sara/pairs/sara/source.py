@@ -74,6 +74,13 @@ def select(ctx: PairContext, cached: PairScores | None = None) -> PairResult:
         roles, chosen_graph, rescued = _choose(len(names), edges, scores, conf)
         timings["graph"] += time.perf_counter() - tic
 
+    labels = selection.connected_components(len(names), _selected_edges(edges, roles))
+    tic = time.perf_counter()
+    scores, num_ratio = rescore_outside(ctx, candidates, edges, labels, scores)
+    timings["scoring"] += time.perf_counter() - tic
+    if num_ratio:
+        roles, chosen_graph, rescued = _choose(len(names), edges, scores, conf)
+
     write_scores_csv(ctx.out_dir / SCORES_NAME, scores, roles)
     chosen = [candidates[e] for e, role in enumerate(roles) if role in selection.SELECTED_ROLES or role == "rescue"]
     labels = selection.connected_components(len(names), _selected_edges(edges, roles))
@@ -81,6 +88,7 @@ def select(ctx: PairContext, cached: PairScores | None = None) -> PairResult:
         "num_candidates": len(candidates),
         "num_candidates_scored": num_scored,
         "num_widened": widened,
+        "num_ratio_accepted": num_ratio,
         "num_accepted": int(scores.accepted.sum()),
         "rejected": _count(r for r in scores.reason if r),
         "num_rescued": rescued,
@@ -105,9 +113,41 @@ def _why_empty(info: dict[str, Any]) -> str:
             "thresholds")
 
 
-def _score(ctx: PairContext, candidates: list[Pair]) -> scoring.PairScores:
+def rescore_outside(ctx: PairContext, candidates: list[Pair], edges: np.ndarray, labels: np.ndarray,
+                    scores: PairScores) -> tuple[PairScores, int]:
+    """The rejected candidates of the views outside the largest component of the selected graph
+    (`labels` 0), scored again with Lowe's ratio test (`rounds.repair_descriptor_ratio`); those it
+    accepts replace their first scores. Returns the scores and how many it accepted.
+
+    The scorer pre-matches by raw descriptor similarity. Across a wide baseline most of its best
+    matches are wrong, so a view whose true partners share plenty of matches can have every
+    candidate rejected (an orbit video picked sparsely: 10 inliers among the 50 best matches for
+    a pair that exhaustive matching verifies with 154). The ratio test finds those matches; it is
+    kept to the views that are cut off, because across the whole selection it changes pairs that
+    were fine (bm-moldGoldCape: AUC@1 0.944 -> 0.925, lab/notes/CAPTURES.md section 10).
+    """
+    ratio = ctx.conf.rounds.repair_descriptor_ratio
+    if ratio >= 1.0 or len(edges) == 0 or labels.max(initial=0) == 0:
+        return scores, 0
+    outside = labels != 0
+    todo = np.flatnonzero((outside[edges[:, 0]] | outside[edges[:, 1]]) & ~scores.accepted)
+    if len(todo) == 0:
+        return scores, 0
+    again = _score(ctx, [candidates[e] for e in todo], replace(ctx.conf.score, max_descriptor_ratio=ratio))
+    better = np.flatnonzero(again.accepted)
+    logger.info("%d rejected candidates of %d views outside the largest part of the selected graph scored again "
+                "with a ratio test of %.2f: %d accepted", len(todo), int(outside.sum()), ratio, len(better))
+    if len(better) == 0:
+        return scores, 0
+    order = np.arange(len(scores))
+    order[todo[better]] = len(scores) + better
+    return take_scores(concat_scores(scores, again), order), len(better)
+
+
+def _score(ctx: PairContext, candidates: list[Pair], score_conf: Any = None) -> scoring.PairScores:
     conf = ctx.conf
-    return scoring.score_pairs(candidates, ctx.features_path, ctx.db_path, conf.score, executor=ctx.executor,
+    return scoring.score_pairs(candidates, ctx.features_path, ctx.db_path, score_conf or conf.score,
+                               executor=ctx.executor,
                                shard_size=conf.execute.shard_size, work_dir=ctx.out_dir / ".sara",
                                progress=ctx.progress, seed=conf.seed)
 
