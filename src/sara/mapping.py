@@ -23,7 +23,7 @@ from tqdm import tqdm
 from . import colmap
 from .colmap import refine as colmap_refine
 from .config import MapConfig
-from .io import DamagedOutputError, NoResultError, file_digest, fingerprint, records
+from .io import DamagedOutputError, NoResultError, file_digest, fingerprint, records, without_added_later
 
 logger = logging.getLogger(__name__)
 
@@ -289,5 +289,5 @@ ADDED_LATER: dict[str, Any] = {"ba_global_growth": 0.0}
 
 
 def state_key(conf: MapConfig, seed: int, upstream_key: str) -> str:
-    keyed = {k: v for k, v in conf.__dict__.items() if not (k in ADDED_LATER and v == ADDED_LATER[k])}
-    return fingerprint({"conf": keyed, "seed": seed, "upstream": upstream_key})
+    return fingerprint({"conf": without_added_later(conf.__dict__, ADDED_LATER), "seed": seed,
+                        "upstream": upstream_key})

@@ -162,6 +162,12 @@ def _json_default(obj: Any) -> Any:
     raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
 
 
+def without_added_later(values: dict[str, Any], later: dict[str, Any]) -> dict[str, Any]:
+    """`values` less the settings of `later` at their value there: settings added after outputs
+    were made are left out of a key at their default, so those outputs are not made again."""
+    return {k: v for k, v in values.items() if not (k in later and v == later[k])}
+
+
 def fingerprint(data: Any) -> str:
     """A short stable hash of JSON-serialisable data (configs, image lists)."""
     blob = json.dumps(data, sort_keys=True, default=_json_default).encode()

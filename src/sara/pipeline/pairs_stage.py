@@ -18,7 +18,7 @@ from typing import Any
 from .. import extract, incremental
 from ..config import PipelineConfig
 from ..execute import Executor
-from ..io import DamagedOutputError, NoResultError, file_digest, fingerprint, records
+from ..io import DamagedOutputError, NoResultError, file_digest, fingerprint, records, without_added_later
 from ..io.images import ImageSet
 from ..io.pairs import read_pairs, write_pairs
 from ..pairs import SOURCES, Extension, PairContext, PairSource, get_source
@@ -58,8 +58,7 @@ ADDED_LATER: dict[str, dict[str, Any]] = {"rounds": {"repair_descriptor_ratio": 
 
 
 def _keyed(section: str, values: dict[str, Any]) -> dict[str, Any]:
-    later = ADDED_LATER.get(section, {})
-    return {k: v for k, v in values.items() if not (k in later and v == later[k])}
+    return without_added_later(values, ADDED_LATER.get(section, {}))
 
 
 def pairs_key(conf: PipelineConfig, extract_key: str, source_file: Path | None) -> str:
