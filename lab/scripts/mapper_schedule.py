@@ -21,6 +21,7 @@ import argparse
 import dataclasses
 import json
 import os
+import re
 import resource
 import subprocess
 import sys
@@ -61,8 +62,31 @@ def matched(world_dir: Path, run_dir: Path, method: str) -> dict:
     return info
 
 
-def child_map(db: Path, out: Path, ratio: float, seed: int) -> None:
-    """One mapping of `db` by sara's mapper call and settings, the global adjustment every `ratio` growth."""
+def parse_variant(spec: str) -> tuple[float, bool, int | None]:
+    """`1.4`, `1.4p`, `1.4r1`: the growth factor, a trailing `p` for COLMAP's pruning of redundant
+    points in each global adjustment, `rN` for at most N refinement rounds of it (COLMAP: 5)."""
+    found = re.fullmatch(r"([0-9.]+)(p?)(?:r([0-9]+))?", spec)
+    if not found:
+        raise SystemExit(f"not a variant: {spec!r} (e.g. 1.4, 1.4p, 1.4r1)")
+    return float(found[1]), bool(found[2]), int(found[3]) if found[3] else None
+
+
+def child_map(db: Path, out: Path, spec: str, seed: int) -> None:
+    """One mapping of `db` by sara's mapper call and settings, the global adjustment as `spec` says
+    (`parse_variant`)."""
+    ratio, prune, refinements = parse_variant(spec)
+    import pycolmap
+
+    made = pycolmap.IncrementalPipelineOptions
+
+    def options() -> pycolmap.IncrementalPipelineOptions:  # sara's call with the variant's settings on top
+        opts = made()
+        opts.mapper.ba_global_ignore_redundant_points3D = prune
+        if refinements is not None:
+            opts.ba_global_max_refinements = refinements
+        return opts
+
+    pycolmap.IncrementalPipelineOptions = options
     from sara.colmap import sfm
     from sara.config import make_config
 
@@ -83,14 +107,15 @@ def child_map(db: Path, out: Path, ratio: float, seed: int) -> None:
 
 def main() -> None:
     if sys.argv[1:2] == ["--child"]:
-        db, out, ratio, seed = sys.argv[2:6]
-        child_map(Path(db), Path(out), float(ratio), int(seed))
+        db, out, spec, seed = sys.argv[2:6]
+        child_map(Path(db), Path(out), spec, int(seed))
         return
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("work", type=Path)
     ap.add_argument("--size", type=int, default=1000)
     ap.add_argument("--method", default="sequential", choices=[m for m in METHODS if "global" not in m])
-    ap.add_argument("--ratios", default="1.1,1.4")
+    ap.add_argument("--ratios", default="1.1,1.4", help="variants: growth factor, then p to prune "
+                    "redundant points in each global adjustment, rN for at most N refinements (1.4,1.4p,1.4r1)")
     ap.add_argument("--seeds", default="0")
     args = ap.parse_args()
     world_dir = ensure_world(args.work, args.size)
@@ -98,17 +123,20 @@ def main() -> None:
     info = matched(world_dir, run_dir, args.method)
     results = args.work / RESULTS
     rows = map(json.loads, results.read_text().splitlines()) if results.exists() else []
-    done = {(r["N"], r["method"], r["ratio"], r["seed"]) for r in rows if r["returncode"] == 0}
+    done = {(r["N"], r["method"], r["ratio"], r.get("prune", False), r.get("refinements"), r["seed"])
+            for r in rows if r["returncode"] == 0}
     for seed in (int(s) for s in args.seeds.split(",")):
-        for ratio in (float(r) for r in args.ratios.split(",")):
-            if (args.size, args.method, ratio, seed) in done:
+        for spec in args.ratios.split(","):
+            ratio, prune, refinements = parse_variant(spec)
+            if (args.size, args.method, ratio, prune, refinements, seed) in done:
                 continue
-            out = run_dir / f"map-r{ratio}-s{seed}"
+            out = run_dir / f"map-r{spec}-s{seed}"
             log = out.with_name(out.name + ".log")
             with open(log, "w") as fh:
                 proc = subprocess.run([sys.executable, __file__, "--child", str(run_dir / "database.db"), str(out),
-                                       str(ratio), str(seed)], stdout=fh, stderr=subprocess.STDOUT)
-            row = {"N": args.size, "method": args.method, "ratio": ratio, "seed": seed, **info,
+                                       spec, str(seed)], stdout=fh, stderr=subprocess.STDOUT)
+            row = {"N": args.size, "method": args.method, "ratio": ratio, "prune": prune,
+                   "refinements": refinements, "seed": seed, **info,
                    "returncode": proc.returncode, "started": time.strftime("%Y-%m-%d %H:%M:%S")}
             if proc.returncode == 0:
                 row.update(json.loads((out / "child.json").read_text()))
@@ -116,7 +144,7 @@ def main() -> None:
             with results.open("a") as fh:
                 fh.write(json.dumps(row) + "\n")
             ev = row.get("eval", {})
-            print(f"N={args.size} {args.method} ratio {ratio} seed {seed}: map {row.get('map_s', 0):.0f} s "
+            print(f"N={args.size} {args.method} ratio {spec} seed {seed}: map {row.get('map_s', 0):.0f} s "
                   f"(CPU {row.get('map_cpu_s', 0):.0f} s), registered {ev.get('num_registered')} in "
                   f"{ev.get('num_components')} models, AUC@1/5 {ev.get('auc', {}).get('1')} / "
                   f"{ev.get('auc', {}).get('5')}", flush=True)
