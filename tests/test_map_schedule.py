@@ -1,5 +1,6 @@
-"""The incremental mapper's global bundle-adjustment schedule: COLMAP's below `LARGE_SCENE_IMAGES`
-images, sparser from there, or the user's factor; and that it reaches pycolmap's options."""
+"""The incremental mapper's global bundle adjustments: COLMAP's schedule and refinement rounds below
+`LARGE_SCENE_IMAGES` images, sparser and fewer from there, or the user's settings; and that they
+reach pycolmap's options."""
 
 from __future__ import annotations
 
@@ -31,8 +32,28 @@ def test_a_growth_that_never_grows_is_refused(bad):
         make_config("sift-offline", {"map.ba_global_growth": bad})
 
 
-@pytest.mark.parametrize("num_images, expected", [(40, 1.1), (600, 1.4)])
-def test_the_map_stage_hands_the_schedule_to_pycolmap(monkeypatch, tmp_path: Path, num_images, expected):
+@pytest.mark.parametrize("setting, num_images, expected", [
+    (0, 119, None),       # the shared scenes: COLMAP's 5
+    (0, 499, None),
+    (0, 500, 1),
+    (3, 10_000, 3),       # the user's count at any size
+    (5, 600, 5),
+])
+def test_the_refinement_rounds_follow_the_size_unless_set(setting, num_images, expected):
+    from sara import mapping
+
+    conf = make_config("sift-offline", {"map.ba_global_refinements": setting}).map
+    assert mapping.ba_global_refinements(conf, num_images) == expected
+
+
+def test_a_negative_refinement_count_is_refused():
+    with pytest.raises(ConfigError, match="ba_global_refinements"):
+        make_config("sift-offline", {"map.ba_global_refinements": -1})
+
+
+@pytest.mark.parametrize("num_images, expected, refinements", [(40, 1.1, 5), (600, 1.4, 1)])
+def test_the_map_stage_hands_the_schedule_to_pycolmap(monkeypatch, tmp_path: Path, num_images, expected,
+                                                      refinements):
     """Through the map stage and sara's call of pycolmap, down to the options pycolmap receives."""
     import pycolmap
 
@@ -41,7 +62,8 @@ def test_the_map_stage_hands_the_schedule_to_pycolmap(monkeypatch, tmp_path: Pat
     seen: list = []
 
     def fake_pycolmap_mapping(db, images, out, *, options, input_path, next_image_callback):
-        seen.append((options.ba_global_frames_ratio, options.ba_global_points_ratio))
+        seen.append((options.ba_global_frames_ratio, options.ba_global_points_ratio,
+                     options.ba_global_max_refinements))
         return {}
 
     monkeypatch.setattr(pycolmap, "incremental_mapping", fake_pycolmap_mapping)
@@ -49,7 +71,7 @@ def test_the_map_stage_hands_the_schedule_to_pycolmap(monkeypatch, tmp_path: Pat
     monkeypatch.setattr(colmap, "verified_graph", lambda db, min_inliers: (0, 0, [], 0))
     mapping._map(make_config("sift-offline", {}).map, tmp_path / "db", tmp_path, tmp_path, 0, False)
     assert seen and all(frames == pytest.approx(expected) and points == pytest.approx(expected)
-                        for frames, points in seen)
+                        and rounds == refinements for frames, points, rounds in seen)
 
 
 def test_a_model_mapped_before_the_setting_existed_is_not_mapped_again():
@@ -60,7 +82,8 @@ def test_a_model_mapped_before_the_setting_existed_is_not_mapped_again():
     from sara.io import fingerprint
 
     conf = make_config("sift-offline", {}).map
-    before = {k: v for k, v in conf.__dict__.items() if k != "ba_global_growth"}
+    before = {k: v for k, v in conf.__dict__.items() if k not in ("ba_global_growth", "ba_global_refinements")}
     assert mapping.state_key(conf, 0, "up") == fingerprint({"conf": before, "seed": 0, "upstream": "up"})
-    by_hand = dataclasses.replace(conf, ba_global_growth=1.4)
-    assert mapping.state_key(by_hand, 0, "up") != mapping.state_key(conf, 0, "up")
+    for setting in ({"ba_global_growth": 1.4}, {"ba_global_refinements": 1}):
+        by_hand = dataclasses.replace(conf, **setting)
+        assert mapping.state_key(by_hand, 0, "up") != mapping.state_key(conf, 0, "up")

@@ -45,7 +45,7 @@ def incremental_mapping(
     db_path: Path, image_dir: Path, out_dir: Path, *, seed: int, min_model_size: int,
     abs_pose_min_num_inliers: int, abs_pose_min_inlier_ratio: float, num_threads: int = -1,
     on_next_image: Callable[[], None] | None = None, input_path: Path | None = None,
-    forward_start: bool = False, ba_global_ratio: float | None = None,
+    forward_start: bool = False, ba_global_ratio: float | None = None, ba_global_refinements: int | None = None,
 ) -> MappedModels:
     """COLMAP's incremental mapper; with `input_path` it continues from that model (registers the
     images it lacks, then bundle-adjusts) instead of starting from an empty one.
@@ -55,12 +55,16 @@ def incremental_mapping(
     the optical axis), so a camera driving or walking straight ahead never starts a model.
     `ba_global_ratio`: adjust the whole model each time its views or points grew by this factor
     (COLMAP's `ba_global_frames_ratio` and `ba_global_points_ratio`; None keeps COLMAP's 1.1).
+    `ba_global_refinements`: the most rounds of re-triangulation and adjustment in each global
+    adjustment (COLMAP's `ba_global_max_refinements`; None keeps its 5).
     """
     opts = pycolmap.IncrementalPipelineOptions()
     if forward_start:
         opts.mapper.init_max_forward_motion = 1.0
     if ba_global_ratio is not None:
         opts.ba_global_frames_ratio = opts.ba_global_points_ratio = ba_global_ratio
+    if ba_global_refinements is not None:
+        opts.ba_global_max_refinements = ba_global_refinements
     opts.min_model_size = min_model_size
     opts.num_threads = num_threads
     opts.mapper.abs_pose_min_num_inliers = abs_pose_min_num_inliers

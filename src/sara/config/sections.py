@@ -184,6 +184,9 @@ class MapConfig:
         its registered views or points grew by this factor (COLMAP's ba_global_frames_ratio and
         ba_global_points_ratio, 1.1). 0: by size, COLMAP's 1.1 for scenes of fewer than 500 images
         and 1.4 from 500 (the same models in less time on the 1,000-image synthetic world).""")
+    ba_global_refinements: int = option(0, ints(0), """Incremental mapper: most rounds of re-triangulation
+        and adjustment in each global bundle adjustment (COLMAP's ba_global_max_refinements, 5).
+        0: by size, COLMAP's 5 for scenes of fewer than 500 images and 1 from 500.""")
 
     def __post_init__(self) -> None:
         validate(self)
