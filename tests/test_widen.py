@@ -90,7 +90,7 @@ def test_the_rejected_candidates_of_cut_off_views_are_scored_again_with_the_rati
     labels = connected_components(4, edges[first.accepted])
     seen: list = []
 
-    def fake_score(ctx, pairs, score_conf=None):
+    def fake_score(ctx, pairs, score_conf=None, progress=None):
         seen.append((pairs, score_conf.max_descriptor_ratio))
         return _scored(pairs, [p == ("a", "d") for p in pairs])
 

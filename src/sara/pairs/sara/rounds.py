@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable
-from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -29,7 +28,7 @@ from .. import NoRounds, PairContext, Round
 from . import pose_guided
 from .budget import PairBudget
 from .repair import fill_pairs, left_out_views, repair_pairs
-from .source import SCORES_NAME
+from .source import SCORES_NAME, score_with_ratio_test
 from .support import support_pairs, view_inliers
 
 logger = logging.getLogger(__name__)
@@ -103,11 +102,7 @@ def _ratio_rescore(ctx: PairContext) -> Callable[[list[Pair]], dict[Pair, int]] 
         return None
 
     def rescore(candidates: list[Pair]) -> dict[Pair, int]:
-        from ... import scoring
-
-        conf = replace(ctx.conf.score, max_descriptor_ratio=ratio)
-        scores = scoring.score_pairs(candidates, ctx.features_path, ctx.db_path, conf, executor=ctx.executor,
-                                     progress=False, seed=ctx.conf.seed)
+        scores = score_with_ratio_test(ctx, candidates, progress=False)
         logger.info("repair: %d candidates of the left-out views scored again with a ratio test of %.2f",
                     len(candidates), ratio)
         return {pair: int(n) for pair, n in zip(candidates, scores.num_inliers_all)}

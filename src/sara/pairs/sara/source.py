@@ -133,7 +133,7 @@ def rescore_outside(ctx: PairContext, candidates: list[Pair], edges: np.ndarray,
     todo = np.flatnonzero((outside[edges[:, 0]] | outside[edges[:, 1]]) & ~scores.accepted)
     if len(todo) == 0:
         return scores, 0
-    again = _score(ctx, [candidates[e] for e in todo], replace(ctx.conf.score, max_descriptor_ratio=ratio))
+    again = score_with_ratio_test(ctx, [candidates[e] for e in todo])
     better = np.flatnonzero(again.accepted)
     logger.info("%d rejected candidates of %d views outside the largest part of the selected graph scored again "
                 "with a ratio test of %.2f: %d accepted", len(todo), int(outside.sum()), ratio, len(better))
@@ -144,12 +144,20 @@ def rescore_outside(ctx: PairContext, candidates: list[Pair], edges: np.ndarray,
     return take_scores(concat_scores(scores, again), order), len(better)
 
 
-def _score(ctx: PairContext, candidates: list[Pair], score_conf: Any = None) -> scoring.PairScores:
+def score_with_ratio_test(ctx: PairContext, candidates: list[Pair], *, progress: bool | None = None
+                          ) -> scoring.PairScores:
+    """`candidates` scored with Lowe's ratio test (`rounds.repair_descriptor_ratio`) in the pre-match."""
+    ratio = ctx.conf.rounds.repair_descriptor_ratio
+    return _score(ctx, candidates, replace(ctx.conf.score, max_descriptor_ratio=ratio), progress=progress)
+
+
+def _score(ctx: PairContext, candidates: list[Pair], score_conf: Any = None, *,
+           progress: bool | None = None) -> scoring.PairScores:
     conf = ctx.conf
     return scoring.score_pairs(candidates, ctx.features_path, ctx.db_path, score_conf or conf.score,
                                executor=ctx.executor,
                                shard_size=conf.execute.shard_size, work_dir=ctx.out_dir / ".sara",
-                               progress=ctx.progress, seed=conf.seed)
+                               progress=ctx.progress if progress is None else progress, seed=conf.seed)
 
 
 def _score_or_reuse(ctx: PairContext, candidates: list[Pair],
