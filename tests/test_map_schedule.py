@@ -51,6 +51,38 @@ def test_a_negative_refinement_count_is_refused():
         make_config("sift-offline", {"map.ba_global_refinements": -1})
 
 
+@pytest.mark.parametrize("setting, num_images, expected", [
+    (0, 999, None),       # COLMAP's own loop, whose solver is direct up to 1,000 images anyway
+    (0, 1000, 5000),      # sara's step-by-step loop, direct up to 5,000
+    (0, 10_000, 5000),
+    (2000, 50, 2000),     # the user's limit at any size
+])
+def test_the_direct_solver_limit_follows_the_size_unless_set(setting, num_images, expected):
+    from sara import mapping
+
+    conf = make_config("sift-offline", {"map.ba_direct_max_images": setting}).map
+    assert mapping.ba_direct_max_images(conf, num_images) == expected
+
+
+def test_a_large_scene_is_mapped_step_by_step_with_the_direct_solver(monkeypatch, tmp_path: Path):
+    """From 1,000 images the map stage hands the mapping to `colmap.stepwise` with its limit;
+    below, to pycolmap's own loop (the test above)."""
+    from sara import colmap, mapping
+    from sara.colmap import stepwise
+
+    seen: list = []
+
+    def fake_stepwise(db, images, out, opts, *, direct_up_to, on_next_image, input_path):
+        seen.append((direct_up_to, opts.ba_global_max_refinements, opts.ba_global_frames_ratio))
+        return {}
+
+    monkeypatch.setattr(stepwise, "incremental_mapping", fake_stepwise)
+    monkeypatch.setattr(colmap, "database_images", lambda db: dict.fromkeys(range(1200)))
+    monkeypatch.setattr(colmap, "verified_graph", lambda db, min_inliers: (0, 0, [], 0))
+    mapping._map(make_config("sift-offline", {}).map, tmp_path / "db", tmp_path, tmp_path, 0, False)
+    assert seen and all(limit == 5000 and rounds == 1 and ratio == pytest.approx(1.4) for limit, rounds, ratio in seen)
+
+
 @pytest.mark.parametrize("num_images, expected, refinements", [(40, 1.1, 5), (600, 1.4, 1)])
 def test_the_map_stage_hands_the_schedule_to_pycolmap(monkeypatch, tmp_path: Path, num_images, expected,
                                                       refinements):
@@ -82,8 +114,9 @@ def test_a_model_mapped_before_the_setting_existed_is_not_mapped_again():
     from sara.io import fingerprint
 
     conf = make_config("sift-offline", {}).map
-    before = {k: v for k, v in conf.__dict__.items() if k not in ("ba_global_growth", "ba_global_refinements")}
+    added = ("ba_global_growth", "ba_global_refinements", "ba_direct_max_images")
+    before = {k: v for k, v in conf.__dict__.items() if k not in added}
     assert mapping.state_key(conf, 0, "up") == fingerprint({"conf": before, "seed": 0, "upstream": "up"})
-    for setting in ({"ba_global_growth": 1.4}, {"ba_global_refinements": 1}):
+    for setting in ({"ba_global_growth": 1.4}, {"ba_global_refinements": 1}, {"ba_direct_max_images": 3000}):
         by_hand = dataclasses.replace(conf, **setting)
         assert mapping.state_key(by_hand, 0, "up") != mapping.state_key(conf, 0, "up")

@@ -63,18 +63,19 @@ def matched(world_dir: Path, run_dir: Path, method: str) -> dict:
 
 
 def parse_variant(spec: str) -> tuple[float, bool, int | None]:
-    """`1.4`, `1.4p`, `1.4r1`: the growth factor, a trailing `p` for COLMAP's pruning of redundant
-    points in each global adjustment, `rN` for at most N refinement rounds of it (COLMAP: 5)."""
-    found = re.fullmatch(r"([0-9.]+)(p?)(?:r([0-9]+))?", spec)
+    """`1.4`, `1.4p`, `1.4r1`, `1.4d`: the growth factor, a trailing `p` for COLMAP's pruning of
+    redundant points in each global adjustment, `rN` for at most N refinement rounds of it (COLMAP:
+    5), `d` for sara's step-by-step mapping with the direct sparse solver at any size."""
+    found = re.fullmatch(r"([0-9.]+)(p?)(?:r([0-9]+))?(d?)", spec)
     if not found:
         raise SystemExit(f"not a variant: {spec!r} (e.g. 1.4, 1.4p, 1.4r1)")
-    return float(found[1]), bool(found[2]), int(found[3]) if found[3] else None
+    return float(found[1]), bool(found[2]), int(found[3]) if found[3] else None, bool(found[4])
 
 
 def child_map(db: Path, out: Path, spec: str, seed: int) -> None:
     """One mapping of `db` by sara's mapper call and settings, the global adjustment as `spec` says
     (`parse_variant`)."""
-    ratio, prune, refinements = parse_variant(spec)
+    ratio, prune, refinements, direct = parse_variant(spec)
     import pycolmap
 
     made = pycolmap.IncrementalPipelineOptions
@@ -97,7 +98,8 @@ def child_map(db: Path, out: Path, spec: str, seed: int) -> None:
     mapped = sfm.incremental_mapping(
         db, out / "images", out / "raw", seed=seed, min_model_size=conf.min_model_size,
         abs_pose_min_num_inliers=conf.abs_pose_min_num_inliers,
-        abs_pose_min_inlier_ratio=conf.abs_pose_min_inlier_ratio, ba_global_ratio=ratio)
+        abs_pose_min_inlier_ratio=conf.abs_pose_min_inlier_ratio, ba_global_ratio=ratio,
+        direct_solver_up_to=100_000 if direct else None)
     wall, cpu1 = time.perf_counter() - tic, resource.getrusage(resource.RUSAGE_SELF)
     sizes = mapped.write_by_size(out / "sparse")
     (out / "child.json").write_text(json.dumps({
@@ -108,6 +110,9 @@ def child_map(db: Path, out: Path, spec: str, seed: int) -> None:
 def main() -> None:
     if sys.argv[1:2] == ["--child"]:
         db, out, spec, seed = sys.argv[2:6]
+        import logging
+
+        logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
         child_map(Path(db), Path(out), spec, int(seed))
         return
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -123,12 +128,12 @@ def main() -> None:
     info = matched(world_dir, run_dir, args.method)
     results = args.work / RESULTS
     rows = map(json.loads, results.read_text().splitlines()) if results.exists() else []
-    done = {(r["N"], r["method"], r["ratio"], r.get("prune", False), r.get("refinements"), r["seed"])
-            for r in rows if r["returncode"] == 0}
+    done = {(r["N"], r["method"], r["ratio"], r.get("prune", False), r.get("refinements"), r.get("direct", False),
+             r["seed"]) for r in rows if r["returncode"] == 0}
     for seed in (int(s) for s in args.seeds.split(",")):
         for spec in args.ratios.split(","):
-            ratio, prune, refinements = parse_variant(spec)
-            if (args.size, args.method, ratio, prune, refinements, seed) in done:
+            ratio, prune, refinements, direct = parse_variant(spec)
+            if (args.size, args.method, ratio, prune, refinements, direct, seed) in done:
                 continue
             out = run_dir / f"map-r{spec}-s{seed}"
             log = out.with_name(out.name + ".log")
@@ -136,7 +141,7 @@ def main() -> None:
                 proc = subprocess.run([sys.executable, __file__, "--child", str(run_dir / "database.db"), str(out),
                                        spec, str(seed)], stdout=fh, stderr=subprocess.STDOUT)
             row = {"N": args.size, "method": args.method, "ratio": ratio, "prune": prune,
-                   "refinements": refinements, "seed": seed, **info,
+                   "refinements": refinements, "direct": direct, "seed": seed, **info,
                    "returncode": proc.returncode, "started": time.strftime("%Y-%m-%d %H:%M:%S")}
             if proc.returncode == 0:
                 row.update(json.loads((out / "child.json").read_text()))

@@ -140,6 +140,11 @@ LARGE_SCENE_IMAGES = 500
 LARGE_SCENE_BA_GROWTH = 1.4
 #: the most refinement rounds of a global adjustment from LARGE_SCENE_IMAGES on; COLMAP's is 5
 LARGE_SCENE_BA_REFINEMENTS = 1
+#: from this many images sara drives the mapper step by step (`map.ba_direct_max_images` 0); COLMAP's
+#: global adjustments switch to Ceres' iterative solver above it
+STEPWISE_IMAGES = 1000
+#: ... and its global adjustments use the direct sparse solver up to this many images
+STEPWISE_DIRECT_MAX_IMAGES = 5000
 
 
 def ba_global_growth(conf: MapConfig, num_images: int) -> float | None:
@@ -168,6 +173,18 @@ def ba_global_refinements(conf: MapConfig, num_images: int) -> int | None:
     return LARGE_SCENE_BA_REFINEMENTS if num_images >= LARGE_SCENE_IMAGES else None
 
 
+def ba_direct_max_images(conf: MapConfig, num_images: int) -> int | None:
+    """The largest model whose global adjustments use Ceres' direct sparse solver, for sara's
+    step-by-step mapping (`colmap.stepwise`); None: COLMAP's own loop (direct up to 1,000 images).
+
+    On a converged 992-view model of the 1,000-image synthetic world, one global adjustment took
+    6.8 s with the direct solver and 103.5 s with the iterative one COLMAP uses above 1,000 images,
+    to the same reprojection error (lab/notes/SCALE.md)."""
+    if conf.ba_direct_max_images > 0:
+        return conf.ba_direct_max_images
+    return STEPWISE_DIRECT_MAX_IMAGES if num_images >= STEPWISE_IMAGES else None
+
+
 def _incremental(conf: MapConfig, db_path: Path, images_root: Path, tmp: Path, seed: int, progress: bool,
                  num_images: int, input_model: Path | None, *, forward_start: bool = False) -> colmap.MappedModels:
     with tqdm(total=num_images, desc="map (incremental)", unit="img", disable=not progress) as bar:
@@ -177,7 +194,8 @@ def _incremental(conf: MapConfig, db_path: Path, images_root: Path, tmp: Path, s
             abs_pose_min_inlier_ratio=conf.abs_pose_min_inlier_ratio, num_threads=conf.num_threads,
             on_next_image=lambda: bar.update(), input_path=input_model, forward_start=forward_start,
             ba_global_ratio=ba_global_growth(conf, num_images),
-            ba_global_refinements=ba_global_refinements(conf, num_images))
+            ba_global_refinements=ba_global_refinements(conf, num_images),
+            direct_solver_up_to=ba_direct_max_images(conf, num_images))
 
 
 def _extend(conf: MapConfig, db_path: Path, images_root: Path, tmp: Path, seed: int, progress: bool,
@@ -289,7 +307,7 @@ def _model_intact(out_dir: Path, sparse: Path) -> bool:
 
 #: settings added after runs were made: left out of the key at these values, so that a finished
 #: model is not mapped again after an upgrade for a setting it could not have had
-ADDED_LATER: dict[str, Any] = {"ba_global_growth": 0.0, "ba_global_refinements": 0}
+ADDED_LATER: dict[str, Any] = {"ba_global_growth": 0.0, "ba_global_refinements": 0, "ba_direct_max_images": 0}
 
 
 def state_key(conf: MapConfig, seed: int, upstream_key: str) -> str:

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import pycolmap
 
+from . import stepwise
 from .native import native_errors
 
 logger = logging.getLogger(__name__)
@@ -46,6 +47,7 @@ def incremental_mapping(
     abs_pose_min_num_inliers: int, abs_pose_min_inlier_ratio: float, num_threads: int = -1,
     on_next_image: Callable[[], None] | None = None, input_path: Path | None = None,
     forward_start: bool = False, ba_global_ratio: float | None = None, ba_global_refinements: int | None = None,
+    direct_solver_up_to: int | None = None,
 ) -> MappedModels:
     """COLMAP's incremental mapper; with `input_path` it continues from that model (registers the
     images it lacks, then bundle-adjusts) instead of starting from an empty one.
@@ -57,6 +59,9 @@ def incremental_mapping(
     (COLMAP's `ba_global_frames_ratio` and `ba_global_points_ratio`; None keeps COLMAP's 1.1).
     `ba_global_refinements`: the most rounds of re-triangulation and adjustment in each global
     adjustment (COLMAP's `ba_global_max_refinements`; None keeps its 5).
+    `direct_solver_up_to`: the mapping is driven step by step (`stepwise`) so that its global
+    adjustments use Ceres' direct sparse solver up to this many images (None: COLMAP's pipeline,
+    iterative above 1,000).
     """
     opts = pycolmap.IncrementalPipelineOptions()
     if forward_start:
@@ -73,6 +78,10 @@ def incremental_mapping(
     opts.mapper.random_seed = seed
     opts.triangulation.random_seed = seed
     with native_errors("map the matches (incremental mapper)", Path(out_dir)):
+        if direct_solver_up_to is not None:
+            return MappedModels(stepwise.incremental_mapping(
+                Path(db_path), Path(image_dir), Path(out_dir), opts, direct_up_to=direct_solver_up_to,
+                on_next_image=on_next_image, input_path=input_path))
         return MappedModels(pycolmap.incremental_mapping(
             str(db_path), str(image_dir), str(out_dir), options=opts,
             input_path=str(input_path) if input_path is not None else "",

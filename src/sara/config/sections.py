@@ -187,6 +187,10 @@ class MapConfig:
     ba_global_refinements: int = option(0, ints(0), """Incremental mapper: most rounds of re-triangulation
         and adjustment in each global bundle adjustment (COLMAP's ba_global_max_refinements, 5).
         0: by size, COLMAP's 5 for scenes of fewer than 500 images and 1 from 500.""")
+    ba_direct_max_images: int = option(0, ints(0), """Incremental mapper: largest model whose global bundle
+        adjustments use Ceres' direct sparse solver (COLMAP switches to an iterative one above 1,000,
+        many times slower). 0: by size, COLMAP's own mapping loop for scenes of fewer than 1,000
+        images, from 1,000 sara drives the mapper step by step with the direct solver up to 5,000.""")
 
     def __post_init__(self) -> None:
         validate(self)

@@ -1,0 +1,168 @@
+"""COLMAP's incremental mapping driven one step at a time, for scenes too large for its own loop.
+
+COLMAP's incremental mapper adjusts the whole model now and then; above 1,000 registered images
+Ceres switches that adjustment from its direct sparse solver to an iterative one, and pycolmap's
+pipeline offers no setting for the switch. On the 3,000-image synthetic world one such adjustment
+took 3-19 minutes past 1,000 views, most of the mapping; on a converged 992-view model the iterative
+solver took 103.5 s where the direct one took 6.8 s for the same result (lab/notes/SCALE.md).
+
+`incremental_mapping` here runs the same steps as COLMAP's pipeline (first pair, next images,
+triangulation, local refinement, global refinement by growth, several models, the two relaxations
+of the first pair's thresholds) through pycolmap's `IncrementalMapper`, with one change: its global
+adjustments may use the direct sparse solver up to `direct_up_to` images.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import pycolmap
+
+logger = logging.getLogger(__name__)
+
+#: COLMAP gives up on a first pair whose model stays under min_model_size after this many failed trials
+MIN_INITIAL_REG_TRIALS = 30
+
+
+def incremental_mapping(db_path: Path, image_dir: Path, out_dir: Path, opts: pycolmap.IncrementalPipelineOptions,
+                        *, direct_up_to: int, on_next_image: Callable[[], None] | None = None,
+                        input_path: Path | None = None) -> dict[int, pycolmap.Reconstruction]:
+    """Map `db_path` as `pycolmap.incremental_mapping` does, the global adjustments allowed Ceres'
+    direct sparse solver up to `direct_up_to` images; each model is written to `out_dir/<index>`."""
+    cache_options = pycolmap.DatabaseCacheOptions()
+    cache_options.min_num_matches = opts.min_num_matches
+    cache_options.ignore_watermarks = opts.ignore_watermarks
+    with pycolmap.Database.open(str(db_path)) as database:
+        cache = pycolmap.DatabaseCache.create(database, cache_options)
+    manager = pycolmap.ReconstructionManager()
+    if input_path is not None:
+        manager.read(str(input_path))
+    run = _Run(opts, cache, manager, direct_up_to, on_next_image)
+    if cache.num_images() > 0:
+        run.all()
+    models = {}
+    for idx in range(manager.size()):
+        rec = manager.get(idx)
+        if opts.extract_colors:
+            rec.extract_colors_for_all_images(str(image_dir))
+        (Path(out_dir) / str(idx)).mkdir(parents=True, exist_ok=True)
+        rec.write(str(Path(out_dir) / str(idx)))
+        models[idx] = rec
+    return models
+
+
+class _Run:
+    """One mapping: COLMAP's `IncrementalPipeline::Run`, `Reconstruct` and `ReconstructSubModel`."""
+
+    def __init__(self, opts: pycolmap.IncrementalPipelineOptions, cache: pycolmap.DatabaseCache,
+                 manager: pycolmap.ReconstructionManager, direct_up_to: int,
+                 on_next_image: Callable[[], None] | None) -> None:
+        self.opts, self.cache, self.manager, self.on_next_image = opts, cache, manager, on_next_image
+        self.pipeline = pycolmap.IncrementalPipeline(opts, cache, manager)
+        self.global_ba = opts.get_global_bundle_adjustment()
+        self.global_ba.ceres.max_num_images_direct_sparse_cpu_solver = max(
+            direct_up_to, self.global_ba.ceres.max_num_images_direct_sparse_cpu_solver)
+        self.local_ba = opts.get_local_bundle_adjustment()
+        self.triangulation = opts.get_triangulation()
+
+    def all(self) -> None:
+        num_images = self.cache.num_images()
+        mapper_options = self.opts.get_mapper()
+        mapper = pycolmap.IncrementalMapper(self.cache)
+        self.models(mapper, mapper_options, cont=self.manager.size() > 0)
+        for _ in range(2):  # COLMAP relaxes the first pair's inliers, then its angle, and tries again
+            for relax in (_halve_inliers, _halve_angle):
+                if mapper.num_total_reg_images() == num_images:
+                    return
+                relax(mapper_options)
+                mapper.reset_initialization_stats()
+                self.models(mapper, mapper_options, cont=False)
+
+    def models(self, mapper: pycolmap.IncrementalMapper, mapper_options: pycolmap.IncrementalMapperOptions,
+               *, cont: bool) -> None:
+        status = pycolmap.IncrementalPipelineStatus
+        for trial in range(self.opts.init_num_trials):
+            idx = 0 if cont and trial == 0 else self.manager.add()
+            rec = self.manager.get(idx)
+            result = self.model(mapper, mapper_options, rec)
+            if result == status.NO_INITIAL_PAIR:
+                mapper.end_reconstruction(True)
+                self.manager.delete(idx)
+                return
+            if result != status.SUCCESS:  # a bad first pair: try another
+                mapper.end_reconstruction(True)
+                self.manager.delete(idx)
+                continue
+            total = mapper.num_total_reg_images()
+            min_size = min(0.8 * self.cache.num_images(), self.opts.min_model_size)
+            if (self.opts.multiple_models and self.manager.size() > 1 and rec.num_reg_frames() < min_size) \
+                    or rec.num_reg_frames() == 0:
+                mapper.end_reconstruction(True)
+                self.manager.delete(idx)
+            else:
+                rec.update_point_3d_errors()
+                mapper.end_reconstruction(False)
+                pycolmap.align_reconstruction_to_orig_rig_scales(self.cache.rigs, rec)
+            if not self.opts.multiple_models or self.manager.size() >= self.opts.max_num_models \
+                    or total >= self.cache.num_images() - 1:
+                return
+
+    def model(self, mapper: pycolmap.IncrementalMapper, mapper_options: pycolmap.IncrementalMapperOptions,
+              rec: pycolmap.Reconstruction) -> pycolmap.IncrementalPipelineStatus:
+        status = pycolmap.IncrementalPipelineStatus
+        mapper.begin_reconstruction(rec)
+        if rec.num_reg_frames() == 0:
+            start = self.pipeline.initialize_reconstruction(mapper, mapper_options, rec)
+            if start != status.SUCCESS:
+                return start
+        ba_frames, ba_points = rec.num_reg_frames(), rec.num_points3D()
+        registered = previous = True
+        while registered or previous:
+            previous, registered = registered, False
+            candidates = mapper.find_next_images(mapper_options, False)
+            if not candidates:
+                break
+            for trial, image_id in enumerate(candidates):
+                registered = mapper.register_next_image(mapper_options, image_id)
+                if registered:
+                    break
+                if trial >= MIN_INITIAL_REG_TRIALS and rec.num_reg_frames() < self.opts.min_model_size:
+                    break
+            if registered:
+                for data_id in rec.image(image_id).frame.image_ids:
+                    mapper.triangulate_image(self.triangulation, data_id.id)
+                mapper.iterative_local_refinement(self.opts.ba_local_max_refinements,
+                                                  self.opts.ba_local_max_refinement_change, mapper_options,
+                                                  self.local_ba, self.triangulation, image_id)
+                if self.pipeline.check_run_global_refinement(rec, ba_frames, ba_points):
+                    self.refine(mapper, mapper_options)
+                    ba_frames, ba_points = rec.num_reg_frames(), rec.num_points3D()
+                if self.on_next_image is not None:
+                    self.on_next_image()
+            if mapper.num_shared_reg_images() >= self.opts.max_model_overlap:
+                break
+            if not registered and previous:
+                self.refine(mapper, mapper_options)
+        if rec.num_reg_frames() > 0 and rec.num_reg_frames() != ba_frames and rec.num_points3D() != ba_points:
+            self.refine(mapper, mapper_options)
+        return status.SUCCESS
+
+    def refine(self, mapper: pycolmap.IncrementalMapper, mapper_options: pycolmap.IncrementalMapperOptions) -> None:
+        tic = time.perf_counter()
+        mapper.iterative_global_refinement(self.opts.ba_global_max_refinements,
+                                           self.opts.ba_global_max_refinement_change, mapper_options,
+                                           self.global_ba, self.triangulation, True)
+        mapper.filter_frames(mapper_options)
+        logger.info("map: global adjustment of %d views in %.1f s", mapper.reconstruction.num_reg_frames(),
+                    time.perf_counter() - tic)
+
+
+def _halve_inliers(options: pycolmap.IncrementalMapperOptions) -> None:
+    options.init_min_num_inliers = options.init_min_num_inliers // 2
+
+
+def _halve_angle(options: pycolmap.IncrementalMapperOptions) -> None:
+    options.init_min_tri_angle = options.init_min_tri_angle / 2

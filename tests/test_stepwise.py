@@ -1,0 +1,88 @@
+"""sara's step-by-step incremental mapping (`sara.colmap.stepwise`): the models COLMAP's own loop
+makes, with global adjustments allowed Ceres' direct sparse solver up to the size it is given."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+import pytest
+
+from sara.colmap import stepwise
+
+
+@pytest.fixture(scope="module")
+def database(tmp_path_factory) -> Path:
+    """20 posed views of 400 points; their matches in `database.db`."""
+    root = tmp_path_factory.mktemp("stepwise")
+    pycolmap.set_random_seed(0)
+    opts = pycolmap.SyntheticDatasetOptions()
+    opts.num_rigs, opts.num_cameras_per_rig, opts.num_frames_per_rig = 1, 1, 20
+    opts.num_points3D = 400
+    opts.camera_width, opts.camera_height = 320, 240
+    opts.camera_model_id = pycolmap.CameraModelId.SIMPLE_RADIAL
+    opts.camera_params = [300.0, 160.0, 120.0, 0.0]
+    db = pycolmap.Database.open(str(root / "database.db"))
+    pycolmap.synthesize_dataset(opts, db)
+    db.close()
+    (root / "images").mkdir()
+    return root / "database.db"
+
+
+def _options() -> pycolmap.IncrementalPipelineOptions:
+    opts = pycolmap.IncrementalPipelineOptions()
+    opts.num_threads = 1
+    opts.random_seed = opts.mapper.random_seed = opts.triangulation.random_seed = 0
+    return opts
+
+
+def _centres(rec: pycolmap.Reconstruction) -> dict[str, np.ndarray]:
+    return {img.name: img.projection_center() for img in rec.images.values() if img.has_pose}
+
+
+def _similarity_residual(a: np.ndarray, b: np.ndarray) -> float:
+    """Largest distance between `b` and `a` mapped onto it by the best similarity, over b's spread."""
+    ca, cb = a - a.mean(axis=0), b - b.mean(axis=0)
+    u, sigma, vt = np.linalg.svd(cb.T @ ca)
+    d = np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))])
+    rotation = u @ d @ vt
+    scale = float(np.trace(np.diag(sigma) @ d) / (ca ** 2).sum())
+    return float(np.linalg.norm(scale * ca @ rotation.T - cb, axis=1).max() / np.linalg.norm(cb, axis=1).max())
+
+
+def test_the_stepwise_mapping_makes_the_models_colmaps_loop_makes(database: Path, tmp_path: Path):
+    images = database.parent / "images"
+    ours = stepwise.incremental_mapping(database, images, tmp_path / "ours", _options(), direct_up_to=5000)
+    theirs = pycolmap.incremental_mapping(str(database), str(images), str(tmp_path / "theirs"), options=_options())
+    assert len(ours) == len(theirs) == 1
+    mine, colmaps = _centres(ours[0]), _centres(theirs[0])
+    assert sorted(mine) == sorted(colmaps) and len(mine) == 20
+    names = sorted(mine)
+    residual = _similarity_residual(np.array([mine[n] for n in names]), np.array([colmaps[n] for n in names]))
+    assert residual < 1e-6  # the same poses up to the gauge (scale, rotation, origin) each loop leaves
+    assert ours[0].num_points3D() == theirs[0].num_points3D()
+    assert (tmp_path / "ours" / "0" / "images.bin").exists()  # written as pycolmap writes its models
+
+
+def test_the_global_adjustments_get_the_direct_solver_limit(database: Path):
+    with pycolmap.Database.open(str(database)) as db:
+        cache = pycolmap.DatabaseCache.create(db, pycolmap.DatabaseCacheOptions())
+    run = stepwise._Run(_options(), cache, pycolmap.ReconstructionManager(), 5000, None)
+    assert run.global_ba.ceres.max_num_images_direct_sparse_cpu_solver == 5000
+    assert pycolmap.IncrementalPipelineOptions().get_global_bundle_adjustment() \
+        .ceres.max_num_images_direct_sparse_cpu_solver == 1000  # COLMAP's own, which the loop replaces
+
+
+def test_a_model_given_to_continue_from_is_continued(database: Path, tmp_path: Path):
+    """sara's repair rounds continue a model: the views it lacks are registered into it."""
+    images = database.parent / "images"
+    full = stepwise.incremental_mapping(database, images, tmp_path / "full", _options(), direct_up_to=5000)[0]
+    for image_id in sorted(full.reg_image_ids())[-5:]:
+        full.deregister_frame(full.images[image_id].frame_id)
+    start = tmp_path / "start"
+    start.mkdir()
+    full.write(str(start))
+    continued = stepwise.incremental_mapping(database, images, tmp_path / "more", _options(), direct_up_to=5000,
+                                             input_path=start)
+    assert continued[0].num_reg_images() == 20
