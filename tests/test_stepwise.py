@@ -86,3 +86,15 @@ def test_a_model_given_to_continue_from_is_continued(database: Path, tmp_path: P
     continued = stepwise.incremental_mapping(database, images, tmp_path / "more", _options(), direct_up_to=5000,
                                              input_path=start)
     assert continued[0].num_reg_images() == 20
+
+
+def test_saras_own_adjustments_get_the_direct_solver_limit(monkeypatch):
+    """The track extension and the pose-guided refinement adjust whole models too."""
+    from sara.colmap import sfm
+
+    seen = []
+    monkeypatch.setattr(pycolmap, "bundle_adjustment",
+                        lambda rec, options: seen.append(options.ceres.max_num_images_direct_sparse_cpu_solver))
+    monkeypatch.setattr(pycolmap.logging, "logtostderr", True)  # the plain call, no console juggling
+    sfm.bundle_adjust(pycolmap.Reconstruction())
+    assert seen == [stepwise.DIRECT_SOLVER_MAX_IMAGES]

@@ -22,6 +22,7 @@ from tqdm import tqdm
 
 from . import colmap
 from .colmap import refine as colmap_refine
+from .colmap.stepwise import DIRECT_SOLVER_MAX_IMAGES
 from .config import MapConfig
 from .io import DamagedOutputError, NoResultError, file_digest, fingerprint, records, without_added_later
 
@@ -143,8 +144,6 @@ LARGE_SCENE_BA_REFINEMENTS = 1
 #: from this many images sara drives the mapper step by step (`map.ba_direct_max_images` 0); COLMAP's
 #: global adjustments switch to Ceres' iterative solver above it
 STEPWISE_IMAGES = 1000
-#: ... and its global adjustments use the direct sparse solver up to this many images
-STEPWISE_DIRECT_MAX_IMAGES = 5000
 
 
 def ba_global_growth(conf: MapConfig, num_images: int) -> float | None:
@@ -182,7 +181,7 @@ def ba_direct_max_images(conf: MapConfig, num_images: int) -> int | None:
     to the same reprojection error (lab/notes/SCALE.md)."""
     if conf.ba_direct_max_images > 0:
         return conf.ba_direct_max_images
-    return STEPWISE_DIRECT_MAX_IMAGES if num_images >= STEPWISE_IMAGES else None
+    return DIRECT_SOLVER_MAX_IMAGES if num_images >= STEPWISE_IMAGES else None
 
 
 def _incremental(conf: MapConfig, db_path: Path, images_root: Path, tmp: Path, seed: int, progress: bool,

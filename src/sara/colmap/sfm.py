@@ -108,6 +108,8 @@ def bundle_adjust(rec: pycolmap.Reconstruction, options: pycolmap.BundleAdjustme
     leaves it so: its report, and every later COLMAP message of the process, then reached the terminal
     even with `--quiet`. Unless the log already goes to the console (`--verbose`), its own report is
     kept off the terminal (it still reaches the log file) and the log settings are put back afterwards.
+    Ceres' direct sparse solver is allowed up to `stepwise.DIRECT_SOLVER_MAX_IMAGES` images (COLMAP:
+    1,000, then an iterative solver many times slower on large models).
     """
     import sys
 
@@ -115,6 +117,8 @@ def bundle_adjust(rec: pycolmap.Reconstruction, options: pycolmap.BundleAdjustme
     saved = (log.logtostderr, log.alsologtostderr, log.stderrthreshold, log.minloglevel)
     to_console = saved[0] or saved[1]
     options = options or pycolmap.BundleAdjustmentOptions()
+    options.ceres.max_num_images_direct_sparse_cpu_solver = max(
+        options.ceres.max_num_images_direct_sparse_cpu_solver, stepwise.DIRECT_SOLVER_MAX_IMAGES)
     if to_console:
         pycolmap.bundle_adjustment(rec, options)
         return

@@ -23,6 +23,9 @@ import pycolmap
 
 logger = logging.getLogger(__name__)
 
+#: sara's own adjustments, and its step-by-step mapping by default, use Ceres' direct sparse solver up
+#: to this many images (COLMAP: 1,000)
+DIRECT_SOLVER_MAX_IMAGES = 5000
 #: COLMAP gives up on a first pair whose model stays under min_model_size after this many failed trials
 MIN_INITIAL_REG_TRIALS = 30
 
