@@ -6,10 +6,11 @@ pipeline offers no setting for the switch. On the 3,000-image synthetic world on
 took 3-19 minutes past 1,000 views, most of the mapping; on a converged 992-view model the iterative
 solver took 103.5 s where the direct one took 6.8 s for the same result (lab/notes/SCALE.md).
 
-`incremental_mapping` here runs the same steps as COLMAP's pipeline (first pair, next images,
-triangulation, local refinement, global refinement by growth, several models, the two relaxations
-of the first pair's thresholds) through pycolmap's `IncrementalMapper`, with one change: its global
-adjustments may use the direct sparse solver up to `direct_up_to` images.
+`incremental_mapping` here runs the same steps as COLMAP's pipeline through pycolmap's
+`IncrementalMapper` (first pair, next images registered from 3D points or else from 2D matches
+alone, triangulation, local refinement, global refinement by growth, several models, the two
+relaxations of the first pair's thresholds), with one change: its global adjustments may use the
+direct sparse solver up to `direct_up_to` images.
 """
 
 from __future__ import annotations
@@ -70,6 +71,8 @@ class _Run:
             direct_up_to, self.global_ba.ceres.max_num_images_direct_sparse_cpu_solver)
         self.local_ba = opts.get_local_bundle_adjustment()
         self.triangulation = opts.get_triangulation()
+        fallback = [False, True] if opts.structure_less_registration_fallback else [False]
+        self.kinds = [True] if opts.structure_less_registration_only else fallback
 
     def all(self) -> None:
         num_images = self.cache.num_images()
@@ -125,14 +128,10 @@ class _Run:
         registered = previous = True
         while registered or previous:
             previous, registered = registered, False
-            candidates = mapper.find_next_images(mapper_options, False)
-            if not candidates:
-                break
-            for trial, image_id in enumerate(candidates):
-                registered = mapper.register_next_image(mapper_options, image_id)
+            image_id = -1
+            for structure_less in self.kinds:  # from 3D points first, then (less reliable) from 2D matches alone
+                image_id, registered = self.register_next(mapper, mapper_options, rec, structure_less)
                 if registered:
-                    break
-                if trial >= MIN_INITIAL_REG_TRIALS and rec.num_reg_frames() < self.opts.min_model_size:
                     break
             if registered:
                 for data_id in rec.image(image_id).frame.image_ids:
@@ -152,6 +151,17 @@ class _Run:
         if rec.num_reg_frames() > 0 and rec.num_reg_frames() != ba_frames and rec.num_points3D() != ba_points:
             self.refine(mapper, mapper_options)
         return status.SUCCESS
+
+    def register_next(self, mapper: pycolmap.IncrementalMapper, mapper_options: pycolmap.IncrementalMapperOptions,
+                      rec: pycolmap.Reconstruction, structure_less: bool) -> tuple[int, bool]:
+        """Try the mapper's next candidates in its order until one registers: (its id, True), else (-1, False)."""
+        register = mapper.register_next_structure_less_image if structure_less else mapper.register_next_image
+        for trial, image_id in enumerate(mapper.find_next_images(mapper_options, structure_less)):
+            if register(mapper_options, image_id):
+                return image_id, True
+            if trial >= MIN_INITIAL_REG_TRIALS and rec.num_reg_images() < self.opts.min_model_size:
+                break  # this first pair does not grow: COLMAP gives it up
+        return -1, False
 
     def refine(self, mapper: pycolmap.IncrementalMapper, mapper_options: pycolmap.IncrementalMapperOptions) -> None:
         tic = time.perf_counter()
