@@ -143,3 +143,21 @@ def write_text_model(model_dir: Path, poses: PoseDict, camera: PinholeCamera = P
     (model_dir / "images.txt").write_text("\n".join(image_lines) + "\n")
     (model_dir / "points3D.txt").write_text("\n".join(point_lines) + "\n")
     return model_dir
+
+
+def synthetic_database(db_path: Path, num_views: int, num_points: int):
+    """pycolmap's synthetic scene of `num_views` posed 320x240 views (one camera) and `num_points`
+    points, its matches written to `db_path`; returns the true reconstruction (seed 0)."""
+    import pycolmap
+
+    pycolmap.set_random_seed(0)
+    opts = pycolmap.SyntheticDatasetOptions()
+    opts.num_rigs, opts.num_cameras_per_rig, opts.num_frames_per_rig = 1, 1, num_views
+    opts.num_points3D = num_points
+    opts.camera_width, opts.camera_height = 320, 240
+    opts.camera_model_id = pycolmap.CameraModelId.SIMPLE_RADIAL
+    opts.camera_params = [300.0, 160.0, 120.0, 0.0]
+    db = pycolmap.Database.open(str(db_path))
+    rec = pycolmap.synthesize_dataset(opts, db)
+    db.close()
+    return rec

@@ -11,6 +11,7 @@ import numpy as np
 import pycolmap
 import pytest
 
+from model_utils import synthetic_database
 from sara.colmap.refine import read_geometry, triangulate_and_adjust
 from sara.colmap.tracks import TrackExtension, extend_tracks, track_distance_threshold, track_sizes
 from sara.config import make_config
@@ -26,16 +27,7 @@ ON = {"rounds.pose_guided_pairs_per_image": 0.5, "budget.max_pairs_per_image": 4
 def model(tmp_path_factory) -> Path:
     """8 posed views of 200 points, every point seen by every view; matches in `database.db`."""
     root = tmp_path_factory.mktemp("pose_guided")
-    pycolmap.set_random_seed(0)
-    opts = pycolmap.SyntheticDatasetOptions()
-    opts.num_rigs, opts.num_cameras_per_rig, opts.num_frames_per_rig = 1, 1, 8
-    opts.num_points3D = 200
-    opts.camera_width, opts.camera_height = 320, 240
-    opts.camera_model_id = pycolmap.CameraModelId.SIMPLE_RADIAL
-    opts.camera_params = [300.0, 160.0, 120.0, 0.0]
-    db = pycolmap.Database.open(str(root / "database.db"))
-    rec = pycolmap.synthesize_dataset(opts, db)
-    db.close()
+    rec = synthetic_database(root / "database.db", 8, 200)
     (root / "sparse" / "0").mkdir(parents=True)
     (root / "images").mkdir()
     rec.write(str(root / "sparse" / "0"))

@@ -9,6 +9,7 @@ import numpy as np
 import pycolmap
 import pytest
 
+from model_utils import synthetic_database
 from sara.colmap import stepwise
 
 
@@ -16,16 +17,7 @@ from sara.colmap import stepwise
 def database(tmp_path_factory) -> Path:
     """20 posed views of 400 points; their matches in `database.db`."""
     root = tmp_path_factory.mktemp("stepwise")
-    pycolmap.set_random_seed(0)
-    opts = pycolmap.SyntheticDatasetOptions()
-    opts.num_rigs, opts.num_cameras_per_rig, opts.num_frames_per_rig = 1, 1, 20
-    opts.num_points3D = 400
-    opts.camera_width, opts.camera_height = 320, 240
-    opts.camera_model_id = pycolmap.CameraModelId.SIMPLE_RADIAL
-    opts.camera_params = [300.0, 160.0, 120.0, 0.0]
-    db = pycolmap.Database.open(str(root / "database.db"))
-    pycolmap.synthesize_dataset(opts, db)
-    db.close()
+    synthetic_database(root / "database.db", 20, 400)
     (root / "images").mkdir()
     return root / "database.db"
 

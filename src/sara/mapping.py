@@ -165,7 +165,8 @@ def ba_global_refinements(conf: MapConfig, num_images: int) -> int | None:
     Each global adjustment of COLMAP's incremental mapper adjusts, re-triangulates and filters up to
     5 times, until under 0.05% of the observations change. Past about 1,000 registered views one
     adjustment of the 3,000-image synthetic world took minutes (lab/notes/SCALE.md); on the
-    1,000-image world one round gave the same views and AUC to 0.0001 in 7-9% less time (two graphs).
+    1,000-image world one round gave the same views and AUC to 0.0001 (two graphs); its 7-9% less
+    time there is within the machine's run-to-run spread, so no gain is claimed.
     Below 500 images COLMAP's 5 stay: the shared scenes were measured with them."""
     if conf.ba_global_refinements > 0:
         return conf.ba_global_refinements
