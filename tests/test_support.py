@@ -68,3 +68,33 @@ def test_the_source_adds_support_pairs_once_per_selection(tmp_path: Path, monkey
     conf_off = make_config(overrides={"rounds.support_min_view_inliers": 0})
     off = SimpleNamespace(names=ctx.names, out_dir=tmp_path, conf=conf_off, max_round_pairs=None)
     assert sara_source.before_mapping(off, pairs, tmp_path / "database.db") == []
+
+
+def test_from_the_size_set_the_round_before_mapping_fills_up_to_the_cap(tmp_path: Path, monkeypatch):
+    rows = [("a", "b", 0.9, True, "tree"), ("b", "c", 0.8, True, "tree"), ("c", "d", 0.7, True, "tree"),
+            ("a", "c", 0.5, True, "unselected"), ("b", "d", 0.6, True, "unselected"),
+            ("a", "d", 0.4, True, "unselected"), ("a", "e", 0.95, False, "rejected")]
+    _scores(tmp_path / "scores.csv", rows)
+    inliers = {("a", "b"): 1000, ("b", "c"): 1000, ("c", "d"): 1000}  # no weak view: no support pairs
+    monkeypatch.setattr(sara_source.colmap, "verified_inliers", lambda db, min_num_inliers: dict(inliers))
+    monkeypatch.setattr(sara_source.colmap, "match_counts", lambda db: dict(inliers))
+    names = ["a", "b", "c", "d", "e"]  # the overrides below make the cap 1 pair per image: 5
+    pairs = [("a", "b"), ("b", "c"), ("c", "d")]
+
+    def ctx(**overrides):
+        conf = make_config(overrides={"budget.max_pairs_fraction": 1.0, "budget.max_pairs_per_image": 1.0,
+                                      **overrides})
+        return SimpleNamespace(names=names, out_dir=tmp_path, conf=conf, max_round_pairs=None)
+
+    # below the size: nothing (the room stays for the pose-guided round)
+    assert sara_source.before_mapping(ctx(), pairs, tmp_path / "database.db") == []
+    # from the size: the best remaining accepted candidates by weight, up to the cap of 5 pairs
+    filled = sara_source.before_mapping(ctx(**{"rounds.fill_before_map_images": 5}), pairs, tmp_path / "database.db")
+    assert filled == [("a", "c"), ("b", "d")]
+    record = sara_source.records.read_record(tmp_path, sara_source.SUPPORT_STAGE)
+    assert record["info"]["num_fill"] == 2
+    # once matched, none again; 0 turns it off at any size
+    assert sara_source.before_mapping(ctx(**{"rounds.fill_before_map_images": 5}), pairs + filled,
+                                      tmp_path / "database.db") == []
+    assert sara_source.before_mapping(ctx(**{"rounds.fill_before_map_images": 0}), pairs,
+                                      tmp_path / "database.db") == []

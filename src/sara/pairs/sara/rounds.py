@@ -127,13 +127,16 @@ def fill_round(ctx: PairContext, pairs: list[Pair], key: str, num_left_out: int)
 def before_mapping(ctx: PairContext, pairs: list[Pair], db_path: Path) -> list[Pair]:
     """More pairs, matched before the first mapping, for the views whose verified pairs in `db_path`
     hold few inlier matches (`support.py`), within half of the room the pair budget leaves (the
-    pose-guided round after mapping keeps the rest); once per selection: [] once they are matched,
-    the same pairs again after an interruption."""
+    pose-guided round after mapping keeps the rest); from `rounds.fill_before_map_images` images
+    also the best remaining candidates up to the cap (`repair.fill_pairs`). Once per selection: []
+    once they are matched, the same pairs again after an interruption."""
     conf = ctx.conf.rounds
-    if conf.support_min_view_inliers <= 0 or conf.support_pairs_per_view <= 0:
+    supports = conf.support_min_view_inliers > 0 and conf.support_pairs_per_view > 0
+    fills = 0 < conf.fill_before_map_images <= len(ctx.names)
+    if not supports and not fills:
         return []
     key = fingerprint({"selection": _selection_key(ctx), "min_view_inliers": conf.support_min_view_inliers,
-                       "per_view": conf.support_pairs_per_view})
+                       "per_view": conf.support_pairs_per_view} | ({"fill": True} if fills else {}))
     record = records.read_record(ctx.out_dir, SUPPORT_STAGE)
     if record and record.get("done") is True and record.get("key") == key:
         return _still_to_match([(a, b) for a, b in record.get("info", {}).get("pairs", [])], pairs)
@@ -141,14 +144,20 @@ def before_mapping(ctx: PairContext, pairs: list[Pair], db_path: Path) -> list[P
     weak = sum(1 for s in support.values() if s < conf.support_min_view_inliers)
     extra = support_pairs(ctx.out_dir / SCORES_NAME, pairs, support, conf.support_min_view_inliers,
                           conf.support_pairs_per_view, budget_of(ctx).support(len(pairs)),
-                          order=view_inliers(ctx.names, pairs, colmap.match_counts(db_path))) if weak else []
+                          order=view_inliers(ctx.names, pairs, colmap.match_counts(db_path))) if weak and supports else []
+    filled = fill_pairs(ctx.out_dir / SCORES_NAME, pairs + extra, budget_of(ctx).cap - len(pairs) - len(extra)) \
+        if fills else []
     records.mark_done(ctx.out_dir, SUPPORT_STAGE, key, {
         "num_weak_views": weak, "view_inliers_median": float(np.median(list(support.values()) or [0])),
-        "pairs": [list(p) for p in extra]})
+        "num_fill": len(filled), "pairs": [list(p) for p in extra + filled]})
     if extra:
         logger.info("%d views have fewer than %d verified inlier matches in all: matching %d more pairs before "
                     "mapping", weak, conf.support_min_view_inliers, len(extra))
-    return extra
+    if filled:
+        logger.info("%d images (rounds.fill_before_map_images: %d): matching the %d best remaining candidates, up "
+                    "to the pair cap, before the first mapping", len(ctx.names), conf.fill_before_map_images,
+                    len(filled))
+    return extra + filled
 
 
 def _still_to_match(chosen: list[Pair], pairs: list[Pair]) -> list[Pair]:
