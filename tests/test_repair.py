@@ -3,7 +3,7 @@ from pathlib import Path
 import pytest
 
 from sara.config import MapConfig
-from sara.pairs.sara.repair import fill_pairs, left_out_views, repair_pairs
+from sara.pairs.sara.repair import fill_pairs, left_out_views, neighbour_pairs, repair_pairs
 
 
 def _scores(path: Path, rows):
@@ -96,12 +96,13 @@ def test_a_repair_that_leaves_most_of_its_views_out_is_not_repeated(tmp_path: Pa
         return [next(p for p in (tuple(sorted((m, v))) for m in sorted(main)) if p not in done) for v in left_out]
 
     monkeypatch.setattr(sara_source, "repair_pairs", fake_repair)
+    monkeypatch.setattr(sara_source.colmap, "verified_inliers", lambda db, min_num_inliers: {})  # no neighbours
     monkeypatch.setattr(sara_source, "pose_guided_round", lambda ctx, pairs, model_dir: [("a", "c")])
     pairs = [("a", "b"), ("b", "c"), ("c", "d"), ("d", "e")]
     header = "name0,name1,num_matches,num_inliers,overlap,parallax_deg,weight,accepted,reason,role\n"
     (tmp_path / "scores.csv").write_text(header + "".join(f"{a},{b},50,40,0.1,5,0.1,true,,tree\n" for a, b in pairs))
     ctx = SimpleNamespace(names=["a", "b", "c", "d", "e"], out_dir=tmp_path, conf=PipelineConfig(),
-                          max_round_pairs=None)
+                          max_round_pairs=None, db_path=tmp_path / "database.db")
     model = tmp_path / "sparse" / "0"
 
     first = sara_source.after_mapping(ctx, pairs, model).pairs
@@ -122,6 +123,49 @@ def test_a_repair_that_leaves_most_of_its_views_out_is_not_repeated(tmp_path: Pa
     (tmp_path / "scores.csv").write_text(header + rows)
     registered.add("d")
     assert sara_source.after_mapping(ctx, pairs + first + second, model).pairs == [("c", "e")]
+
+
+def test_neighbour_pairs_link_the_registered_neighbours_of_a_left_out_view(tmp_path: Path):
+    """v is matched to a, b and c in the model and still out: pairs among a, b, c, best weight first."""
+    path = tmp_path / "scores.csv"
+    header = "name0,name1,num_matches,num_inliers,overlap,parallax_deg,weight,accepted,reason,role\n"
+    rows = [("a", "b", 0.3, "true"), ("a", "c", 0.8, "true"), ("b", "c", 0.5, "true"), ("c", "d", 0.9, "true"),
+            ("a", "v", 0.9, "true"), ("b", "d", 0.99, "false")]
+    path.write_text(header + "".join(f"{a},{b},50,40,0.1,5,{w},{ok},,unselected\n" for a, b, w, ok in rows))
+    linked = {("a", "v"): 120, ("b", "v"): 90, ("c", "v"): 60, ("d", "v"): 40, ("a", "d"): 300}
+    main = {"a", "b", "c"}  # d is matched to v but not in the model; a-b is already matched
+    near = neighbour_pairs(path, [("a", "b")], main, ["v"], linked, per_view=3)
+    assert near == {"v": [("a", "c"), ("b", "c")]}
+    assert neighbour_pairs(path, [("a", "b")], main, ["v"], linked, per_view=1) == {"v": [("a", "c")]}
+    # a view with no neighbour in the model gets none; a pair goes to the first view that names it
+    assert neighbour_pairs(path, [], main, ["d", "v", "w"], {**linked, ("b", "w"): 50, ("c", "w"): 50},
+                           per_view=3) == {"d": [], "v": [("a", "c"), ("b", "c"), ("a", "b")], "w": []}
+
+
+def test_the_repair_takes_one_pair_of_each_kind_per_view_in_turn(tmp_path: Path, monkeypatch):
+    from types import SimpleNamespace
+
+    from sara.config import make_config
+    from sara.pairs.sara import rounds as sara_source
+
+    own = {"v": [("m1", "v"), ("m2", "v")], "w": [("m1", "w")]}
+    near = {"v": [("m1", "m2"), ("m2", "m3")], "w": [("m3", "m4")]}
+    monkeypatch.setattr(sara_source, "repair_pairs", lambda *a, **k: sorted(p for ps in own.values() for p in ps))
+    monkeypatch.setattr(sara_source, "neighbour_pairs", lambda *a, **k: near)
+    monkeypatch.setattr(sara_source.colmap, "verified_inliers", lambda db, min_num_inliers: {})
+    names = ["m1", "m2", "m3", "m4", "v", "w"]
+    pairs = [("m1", "m2"), ("m2", "m3"), ("m3", "m4"), ("m4", "v"), ("m4", "w")]  # the cap (6 pairs) leaves 1
+
+    def repair(room_per_image: float):
+        conf = make_config(overrides={"budget.max_pairs_per_image": room_per_image, "budget.max_pairs_fraction": 1.0})
+        ctx = SimpleNamespace(names=names, out_dir=tmp_path, conf=conf, max_round_pairs=None,
+                              db_path=tmp_path / "database.db")
+        return sara_source._repair_round(ctx, pairs, {"m1", "m2", "m3", "m4"}, ["v", "w"])
+
+    # room: at least 2 per left-out view (4): v's first of each kind, then w's
+    assert repair(1.0) == sorted([("m1", "v"), ("m1", "m2"), ("m1", "w"), ("m3", "m4")])
+    # with room for all: every pair of both kinds
+    assert repair(9.0) == sorted([("m1", "v"), ("m2", "v"), ("m1", "w"), ("m1", "m2"), ("m2", "m3"), ("m3", "m4")])
 
 
 def test_fill_pairs_are_the_best_unmatched_accepted_candidates(tmp_path: Path):
@@ -153,7 +197,9 @@ def test_views_a_repair_left_out_get_the_fill_round_once_then_the_pose_guided_on
                                          + "".join(f"{a},{b},50,40,0.1,5,{w},true,,unselected\n" for a, b, w in others))
     # a pair cap of 6 pairs for 5 views leaves room for 2 beyond the 4 matched
     conf = make_config(overrides={"budget.max_pairs_per_image": 1.2, "budget.max_pairs_fraction": 1.0})
-    ctx = SimpleNamespace(names=["a", "b", "c", "d", "e"], out_dir=tmp_path, conf=conf, max_round_pairs=None)
+    ctx = SimpleNamespace(names=["a", "b", "c", "d", "e"], out_dir=tmp_path, conf=conf, max_round_pairs=None,
+                          db_path=tmp_path / "database.db")
+    monkeypatch.setattr(sara_source.colmap, "verified_inliers", lambda db, min_num_inliers: {})
     model = tmp_path / "sparse" / "0"
 
     fill = sara_source.after_mapping(ctx, tree, model)

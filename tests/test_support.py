@@ -86,8 +86,10 @@ def test_from_the_size_set_the_round_before_mapping_fills_up_to_the_cap(tmp_path
                                       **overrides})
         return SimpleNamespace(names=names, out_dir=tmp_path, conf=conf, max_round_pairs=None)
 
-    # below the size: nothing (the room stays for the pose-guided round)
+    # off by default, and nothing below the size set (the room stays for the pose-guided round)
     assert sara_source.before_mapping(ctx(), pairs, tmp_path / "database.db") == []
+    assert sara_source.before_mapping(ctx(**{"rounds.fill_before_map_images": 6}), pairs,
+                                      tmp_path / "database.db") == []
     # from the size: the best remaining accepted candidates by weight, up to the cap of 5 pairs
     filled = sara_source.before_mapping(ctx(**{"rounds.fill_before_map_images": 5}), pairs, tmp_path / "database.db")
     assert filled == [("a", "c"), ("b", "d")]

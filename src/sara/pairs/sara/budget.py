@@ -54,9 +54,11 @@ class PairBudget:
         return (self.cap - num_matched) // 2
 
     def repair(self, num_matched: int, num_left_out: int) -> int:
-        """Pairs a repair round may add: the room under the usual cap, and at least one per view
-        left out of the model (a view without a pair into the model cannot be registered)."""
-        return self._in_time(max(self.budget.pair_cap(self.num_images) - num_matched, num_left_out))
+        """Pairs a repair round may add: the room under the usual cap, and at least two per view
+        left out of the model: one into the model (a view without a pair into it cannot be
+        registered) and one between its neighbours there (without it their keypoints it sees may
+        have no 3D point)."""
+        return self._in_time(max(self.budget.pair_cap(self.num_images) - num_matched, 2 * num_left_out))
 
     def fill(self, num_matched: int) -> int:
         """Pairs the fill round may add (after a repair that left its views out): a repair's room,

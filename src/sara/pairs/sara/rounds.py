@@ -27,7 +27,7 @@ from ...io.scores import read_scores_csv
 from .. import NoRounds, PairContext, Round
 from . import pose_guided
 from .budget import PairBudget
-from .repair import fill_pairs, left_out_views, repair_pairs
+from .repair import fill_pairs, left_out_views, neighbour_pairs, repair_pairs
 from .source import SCORES_NAME, score_with_ratio_test
 from .support import support_pairs, view_inliers
 
@@ -79,10 +79,7 @@ def after_mapping(ctx: PairContext, pairs: list[Pair], model_dir: Path) -> Round
     left_out = left_out_views(ctx.names, pairs, main)
     key = _selection_key(ctx) if left_out else ""
     if left_out and not _repair_stalled(ctx, key, pairs, left_out):
-        extra = repair_pairs(ctx.out_dir / SCORES_NAME, pairs, main, left_out, ctx.conf.rounds.repair_pairs_per_view,
-                             rescore=_ratio_rescore(ctx))
-        room = budget_of(ctx).repair(len(pairs), len(left_out))
-        extra = extra[:room] if len(extra) > room else extra
+        extra = _repair_round(ctx, pairs, main, left_out)
         if extra:
             logger.warning("%d views were left out of the main model: matching %d more pairs and mapping again",
                            len(left_out), len(extra))
@@ -92,6 +89,31 @@ def after_mapping(ctx: PairContext, pairs: list[Pair], model_dir: Path) -> Round
     if left_out and (extra := fill_round(ctx, pairs, key, len(left_out))):
         return Round(extra, "fill")
     return Round(pose_guided_round(ctx, pairs, model_dir), "pose-guided")
+
+
+def _repair_round(ctx: PairContext, pairs: list[Pair], main: set[str], left_out: list[str]) -> list[Pair]:
+    """The repair's pairs, within its room: for each left-out view its best candidates into the main
+    model (`repair_pairs`) and pairs between its neighbours in the model (`neighbour_pairs`), taken
+    one of each per view in turn, so that a short room still reaches every view."""
+    per_view = ctx.conf.rounds.repair_pairs_per_view
+    own = repair_pairs(ctx.out_dir / SCORES_NAME, pairs, main, left_out, per_view, rescore=_ratio_rescore(ctx))
+    own_by_view: dict[str, list[Pair]] = {v: [] for v in left_out}
+    targets = set(left_out)
+    for pair in own:
+        own_by_view[pair[0] if pair[0] in targets else pair[1]].append(pair)
+    linked = colmap.verified_inliers(ctx.db_path, ctx.conf.match.min_num_inliers)
+    near = neighbour_pairs(ctx.out_dir / SCORES_NAME, pairs, main, left_out, linked, per_view)
+    ordered: list[Pair] = []
+    for k in range(per_view):
+        for view in left_out:
+            ordered += [p[k] for p in (own_by_view[view], near[view]) if len(p) > k]
+    ordered = list(dict.fromkeys(ordered))
+    room = budget_of(ctx).repair(len(pairs), len(left_out))
+    taken = ordered[:room]
+    num_near = len(set(taken) & {p for v in left_out for p in near[v]})
+    logger.info("repair: %d pairs into the main model, %d between the left-out views' neighbours in it",
+                len(taken) - num_near, num_near)
+    return sorted(taken)
 
 
 def _ratio_rescore(ctx: PairContext) -> Callable[[list[Pair]], dict[Pair, int]] | None:
