@@ -247,3 +247,36 @@ def test_a_repair_round_continues_the_model_and_never_maps_anew(tmp_path: Path, 
     recs, _, _ = mapping._extend(MapConfig(), tmp_path / "db", tmp_path, tmp_path, 0, False, tmp_path / "in", 15)
     assert maps == ["continued"]
     assert recs.largest == continued
+
+
+def test_after_the_fill_one_more_repair_then_the_pose_guided_round(tmp_path: Path, monkeypatch):
+    from types import SimpleNamespace
+
+    from sara.config import make_config
+    from sara.pairs.sara import rounds as sara_source
+
+    registered = {"a", "b", "c"}
+    monkeypatch.setattr(sara_source.colmap, "registered_images", lambda model_dir: set(registered))
+    monkeypatch.setattr(sara_source.colmap, "verified_inliers", lambda db, min_num_inliers: {})
+    monkeypatch.setattr(sara_source, "pose_guided_round", lambda ctx, pairs, model_dir: [("a", "c")])
+    tree = [("a", "b"), ("b", "c"), ("c", "d"), ("d", "e")]
+    others = [("a", "d", 0.3), ("b", "d", 0.6), ("c", "e", 0.5), ("a", "e", 0.1), ("b", "e", 0.2)]
+    header = "name0,name1,num_matches,num_inliers,overlap,parallax_deg,weight,accepted,reason,role\n"
+    (tmp_path / "scores.csv").write_text(header + "".join(f"{a},{b},50,40,0.1,5,0.9,true,,tree\n" for a, b in tree)
+                                         + "".join(f"{a},{b},50,40,0.1,5,{w},true,,unselected\n" for a, b, w in others))
+    # a cap of 8 pairs: the tree, a first repair of a-d and a-e, a fill of the best two (b-d, c-e); b-e is left
+    conf = make_config(overrides={"budget.max_pairs_per_image": 1.6, "budget.max_pairs_fraction": 1.0,
+                                  "rounds.repair_pairs_per_view": 1, "rounds.repair_descriptor_ratio": 1.0})
+    ctx = SimpleNamespace(names=["a", "b", "c", "d", "e"], out_dir=tmp_path, conf=conf, max_round_pairs=None,
+                          db_path=tmp_path / "database.db")
+    model = tmp_path / "sparse" / "0"
+
+    matched = list(tree)
+    rounds = [("repair", [("a", "d"), ("a", "e")]), ("fill", [("b", "d"), ("c", "e")]), ("repair", [("b", "e")]),
+              ("pose-guided", [("a", "c")])]
+    for role, pairs in rounds:  # d and e stay out throughout
+        added = sara_source.after_mapping(ctx, matched, model)
+        assert (added.role, added.pairs) == (role, pairs)
+        matched += added.pairs
+    # and the pose-guided pairs once more, never a third repair
+    assert sara_source.after_mapping(ctx, matched, model).role == "pose-guided"

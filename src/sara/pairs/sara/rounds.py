@@ -66,8 +66,10 @@ def after_mapping(ctx: PairContext, pairs: list[Pair], model_dir: Path) -> Round
     """More pairs once a model exists, within the cap of all rounds (`BudgetConfig.pair_cap`):
 
     1. views that the mapper left out of the main model although the selected graph joins them to
-       it: their best unselected candidates into the main model (`repair.py`), unless the last
-       round was such a repair and most of its views are still out (`_repair_stalled`);
+       it: their best unselected candidates into the main model and pairs between their
+       neighbours there (`repair.py`), unless the last round was such a repair and most of its
+       views are still out (`_repair_stalled`; once the fill round's pairs are matched, one more
+       repair may run);
     2. then, while views are still out (the repair stalled, or found no candidate into the model),
        once: the best unmatched candidates of all views by weight, up to the cap (`repair.fill_pairs`);
     3. otherwise, once: the pose-guided round (`pose_guided.py`), the unmatched pairs of registered
@@ -84,7 +86,8 @@ def after_mapping(ctx: PairContext, pairs: list[Pair], model_dir: Path) -> Round
             logger.warning("%d views were left out of the main model: matching %d more pairs and mapping again",
                            len(left_out), len(extra))
             records.mark_done(ctx.out_dir, REPAIR_STAGE, key,
-                              {"left_out": sorted(left_out), "pairs": _pairs_key(pairs + extra), "stalled": False})
+                              {"left_out": sorted(left_out), "pairs": _pairs_key(pairs + extra), "stalled": False,
+                               "after_fill": _filled(ctx, key, pairs)})
             return Round(extra, "repair")
     if left_out and (extra := fill_round(ctx, pairs, key, len(left_out))):
         return Round(extra, "fill")
@@ -209,7 +212,9 @@ def _repair_stalled(ctx: PairContext, key: str, pairs: list[Pair], left_out: lis
     info = record.get("info", {})
     before = set(info.get("left_out", []))
     if info.get("stalled"):
-        return set(left_out) <= before
+        # the fill round's pairs came after this verdict: the part is denser now, one more repair may tie
+        # the views in (with pairs between their new neighbours); a repair after the fill stalls for good
+        return set(left_out) <= before and (info.get("after_fill", False) or not _filled(ctx, key, pairs))
     still = before & set(left_out)
     if info.get("pairs") != _pairs_key(pairs) or set(left_out) - before or 2 * len(still) <= len(before):
         return False
@@ -217,6 +222,15 @@ def _repair_stalled(ctx: PairContext, key: str, pairs: list[Pair], left_out: lis
     logger.warning("%d of the %d views of the last repair round are still out of the main model: leaving them out",
                    len(still), len(before))
     return True
+
+
+def _filled(ctx: PairContext, key: str, pairs: list[Pair]) -> bool:
+    """True when the fill round of this selection (`key`) chose pairs and all of them are matched."""
+    record = records.read_record(ctx.out_dir, FILL_STAGE)
+    if not record or record.get("done") is not True or record.get("key") != key:
+        return False
+    chosen = [tuple(p) for p in record.get("info", {}).get("pairs", [])]
+    return bool(chosen) and not _still_to_match(chosen, pairs)
 
 
 def _selection_key(ctx: PairContext) -> str:
