@@ -169,7 +169,8 @@ def before_mapping(ctx: PairContext, pairs: list[Pair], db_path: Path) -> list[P
     weak = sum(1 for s in support.values() if s < conf.support_min_view_inliers)
     extra = support_pairs(ctx.out_dir / SCORES_NAME, pairs, support, conf.support_min_view_inliers,
                           conf.support_pairs_per_view, budget_of(ctx).support(len(pairs)),
-                          order=view_inliers(ctx.names, pairs, colmap.match_counts(db_path))) if weak and supports else []
+                          order=view_inliers(ctx.names, pairs, colmap.match_counts(db_path))) \
+        if weak and supports else []
     filled = fill_pairs(ctx.out_dir / SCORES_NAME, pairs + extra, budget_of(ctx).cap - len(pairs) - len(extra)) \
         if fills else []
     records.mark_done(ctx.out_dir, SUPPORT_STAGE, key, {
