@@ -110,7 +110,6 @@ def _repair_round(ctx: PairContext, pairs: list[Pair], main: set[str], left_out:
     for k in range(per_view):
         for view in left_out:
             ordered += [p[k] for p in (own_by_view[view], near[view]) if len(p) > k]
-    ordered = list(dict.fromkeys(ordered))
     room = budget_of(ctx).repair(len(pairs), len(left_out))
     taken = ordered[:room]
     num_near = len(set(taken) & {p for v in left_out for p in near[v]})
