@@ -90,3 +90,44 @@ def test_saras_own_adjustments_get_the_direct_solver_limit(monkeypatch):
     monkeypatch.setattr(pycolmap.logging, "logtostderr", True)  # the plain call, no console juggling
     sfm.bundle_adjust(pycolmap.Reconstruction())
     assert seen == [stepwise.DIRECT_SOLVER_MAX_IMAGES]
+
+
+def test_a_continued_model_is_grown_on_the_lighter_schedule(database: Path, tmp_path: Path, monkeypatch):
+    """Continuing, each new view gets one round of local adjustment and the whole model is adjusted
+    by growth only, not every `ba_global_frames_freq` views as when mapping from a first pair."""
+    images = database.parent / "images"
+    opts = _options()
+    opts.ba_global_frames_freq = 1  # COLMAP's schedule: the whole model after every view
+    opts.ba_global_frames_ratio = opts.ba_global_points_ratio = 100.0
+    full = stepwise.incremental_mapping(database, images, tmp_path / "full", opts, direct_up_to=5000)[0]
+    for image_id in sorted(full.reg_image_ids())[-8:]:
+        full.deregister_frame(full.images[image_id].frame_id)
+    start = tmp_path / "start"
+    start.mkdir()
+    full.write(str(start))
+
+    local_rounds: list[int] = []
+    refines: list[int] = []
+
+    class Counting(pycolmap.IncrementalMapper):
+        def iterative_local_refinement(self, max_refinements, *args):
+            local_rounds.append(max_refinements)
+            return super().iterative_local_refinement(max_refinements, *args)
+
+    monkeypatch.setattr(pycolmap, "IncrementalMapper", Counting)
+    refine = stepwise._Run.refine
+
+    def counted_refine(self, mapper, options):
+        refines.append(1)
+        refine(self, mapper, options)
+
+    monkeypatch.setattr(stepwise._Run, "refine", counted_refine)
+    continued = stepwise.incremental_mapping(database, images, tmp_path / "more", opts, direct_up_to=5000,
+                                             input_path=start)
+    assert continued[0].num_reg_images() == 20
+    assert local_rounds == [stepwise.CONTINUED_LOCAL_REFINEMENTS] * 8
+    assert len(refines) <= 2  # when the registrations end, and once more if the views changed since
+
+    local_rounds.clear(), refines.clear()
+    stepwise.incremental_mapping(database, images, tmp_path / "again", opts, direct_up_to=5000)
+    assert set(local_rounds) == {opts.ba_local_max_refinements} and len(refines) >= 15  # from a first pair
