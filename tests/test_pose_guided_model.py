@@ -372,3 +372,18 @@ def test_the_scale_test_is_on_only_for_features_whose_scores_are_scales():
     assert round_._extension(rounds, "sift").scale_quantile == rounds.extend_tracks_scale_quantile > 0
     for backend in ("aliked-n16", "disk", "xfeat"):  # their scores are detection scores
         assert round_._extension(rounds, backend).scale_quantile == 0.0
+
+
+def test_the_adjustment_after_a_track_extension_is_capped(model: Path, tmp_path: Path, monkeypatch):
+    """The model was adjusted before its tracks grew: the adjustment after the extension stops after
+    `EXTENDED_BA_MAX_ITERATIONS` (pycolmap's own default is 100)."""
+    from sara.colmap import refine
+
+    seen = []
+    monkeypatch.setattr(refine, "extend_tracks", lambda rec, features, ext: 5)
+    monkeypatch.setattr(refine, "bundle_adjust", lambda rec, options=None: seen.append(
+        None if options is None else options.ceres.solver_options.max_num_iterations))
+    counts = refine.extend_and_adjust(model / "sparse" / "0", tmp_path / "out", tmp_path / "features.h5")
+    assert counts["observations_added"] == 5.0
+    assert seen == [refine.EXTENDED_BA_MAX_ITERATIONS] and refine.EXTENDED_BA_MAX_ITERATIONS < 100
+    assert pycolmap.BundleAdjustmentOptions().ceres.solver_options.max_num_iterations == 100
