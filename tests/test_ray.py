@@ -76,3 +76,35 @@ def test_a_dead_worker_is_replaced_and_the_work_completes(ray_cluster, tmp_path:
     finally:
         executor.close()
     shutil.rmtree(tmp_path, ignore_errors=True)
+
+
+@pytest.mark.slow  # each Ray worker imports torch and builds the network: 93 s on 2 busy cores
+def test_learned_extraction_runs_on_the_ray_cluster(ray_cluster, synthetic_scene, tmp_path: Path,
+                                                   monkeypatch) -> None:
+    """XFeat's extraction spread over the two nodes (10 images in chunks of 8: two tasks) gives the
+    features of a serial extraction in this process."""
+    pytest.importorskip("torch")
+    pytest.importorskip("kornia")
+    import numpy as np
+
+    from sara import extract, weights
+    from sara.io.h5 import list_names, read_features
+
+    try:
+        weights.find("xfeat")
+    except weights.WeightsNotFoundError as exc:
+        pytest.skip(f"XFeat's weights are not installed: {exc}")
+    images, _ = synthetic_scene
+    serial, clustered = tmp_path / "serial", tmp_path / "ray"
+    preset = ["--preset", "xfeat-lighterglue", "-s", "extract.max_image_size=320"]  # quick on a CPU
+    assert main(["extract", str(images), str(serial), "-q", "--executor", "serial", *preset]) == 0
+    monkeypatch.setenv("RAY_ADDRESS", ray_cluster)
+    assert main(["extract", str(images), str(clustered), "-q", "--executor", "ray", "--ray-address", "auto",
+                 *preset]) == 0
+    assert extract.EXTRACT_CHUNK < 10  # more than one task
+    one, two = serial / "features-xfeat.h5", clustered / "features-xfeat.h5"
+    assert list_names(one) == list_names(two) and len(list_names(one)) == 10
+    for name in list_names(one):
+        a, b = read_features(one, name), read_features(two, name)
+        assert len(a.keypoints) > 100
+        assert np.allclose(a.keypoints, b.keypoints) and np.allclose(a.descriptors, b.descriptors, atol=1e-5)
