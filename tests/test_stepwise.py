@@ -128,6 +128,7 @@ def test_a_continued_model_is_grown_on_the_lighter_schedule(database: Path, tmp_
     assert local_rounds == [stepwise.CONTINUED_LOCAL_REFINEMENTS] * 8
     assert len(refines) <= 2  # when the registrations end, and once more if the views changed since
 
-    local_rounds.clear(), refines.clear()
+    local_rounds.clear()
+    refines.clear()
     stepwise.incremental_mapping(database, images, tmp_path / "again", opts, direct_up_to=5000)
     assert set(local_rounds) == {opts.ba_local_max_refinements} and len(refines) >= 15  # from a first pair
