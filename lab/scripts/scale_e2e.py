@@ -105,8 +105,9 @@ def prepare_run_dir(world_dir: Path, run_dir: Path) -> None:
     os.link(feats, run_dir / feats.name)
 
 
-def child_main(world_dir: Path, run_dir: Path, method: str, overrides: dict[str, str]) -> None:
+def child_main(world_dir: Path, run_dir: Path, method: str, overrides: dict[str, str], resume: bool = False) -> None:
     import dataclasses
+    import logging
 
     from sara import colmap
     from sara.bench.world import image_set
@@ -117,8 +118,11 @@ def child_main(world_dir: Path, run_dir: Path, method: str, overrides: dict[str,
     from sara.pipeline import map_model, match_pairs, pair_context, rounds, select_pairs
     from sara.pipeline.pairs_stage import current_key
 
+    logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(name)s %(message)s")
+    logging.getLogger("sara.colmap.stepwise").setLevel(logging.INFO)  # each global adjustment, timed
     conf = make_config(overrides={**METHODS[method], **overrides})
-    prepare_run_dir(world_dir, run_dir)
+    if not (resume and (run_dir / ".sara").is_dir()):  # resuming: the stages already done are skipped
+        prepare_run_dir(world_dir, run_dir)
     clock = StageClock(run_dir / "progress.jsonl")
     images = dataclasses.replace(image_set(world_dir), root=run_dir / "images")
     features = run_dir / "features-sift.h5"
@@ -204,6 +208,8 @@ def run_child(args: argparse.Namespace, world_dir: Path, run_dir: Path, method: 
     cmd = [sys.executable, str(Path(__file__).resolve()), "--child", str(world_dir), str(run_dir), method]
     for item in args.set:
         cmd += ["--set", item]
+    if args.resume:
+        cmd.append("--resume")
     log_path = run_dir.with_name(run_dir.name + ".log")
     peak = {"tree_rss": 0, "tree_pss": 0}
     loads, stopped, tic = [], None, time.perf_counter()
@@ -332,7 +338,9 @@ def bench(args: argparse.Namespace) -> None:
         for method in todo:
             run_dir = work / f"run-{n}-{method}"
             print(f"N={n} {method}: running", flush=True)
-            row = {"N": n, "method": method, "set": args.set, "started": time.strftime("%Y-%m-%d %H:%M:%S"),
+            earlier = _progress(run_dir / "progress.jsonl") if args.resume else {}
+            row = {**({"resumed_after": earlier} if earlier.get("finished") else {}),
+                   "N": n, "method": method, "set": args.set, "started": time.strftime("%Y-%m-%d %H:%M:%S"),
                    **run_child(args, world_dir, run_dir, method)}
             row["eval"] = evaluate(run_dir, world_dir / "gt")
             with (work / RESULTS).open("a") as fh:
@@ -349,8 +357,11 @@ def bench(args: argparse.Namespace) -> None:
 
 
 def stage_times(row: dict[str, Any]) -> dict[str, float | None]:
-    """pairs, match, map and rounds seconds (rounds: before and after the first mapping together)."""
-    st = row.get("stages") or row.get("progress", {}).get("finished", {})
+    """pairs, match, map and rounds seconds (rounds: before and after the first mapping together);
+    a resumed run's stages add the times its stopped attempt spent on them."""
+    st = dict(row.get("stages") or row.get("progress", {}).get("finished", {}))
+    for name, earlier in row.get("resumed_after", {}).get("finished", {}).items():
+        st[name] = {"wall_s": earlier["wall_s"] + st.get(name, {}).get("wall_s", 0.0)}
     rounds_s = [st[k]["wall_s"] for k in ("round_before_map", "rounds_after_map") if k in st]
     return {"pairs": st.get("pairs", {}).get("wall_s"), "match": st.get("match", {}).get("wall_s"),
             "map": st.get("map", {}).get("wall_s"), "rounds": sum(rounds_s) if rounds_s else None}
@@ -448,8 +459,9 @@ def main() -> None:
         ap.add_argument("run", type=Path)
         ap.add_argument("method", choices=list(METHODS))
         ap.add_argument("--set", action="append", default=[])
+        ap.add_argument("--resume", action="store_true")
         a = ap.parse_args(sys.argv[2:])
-        child_main(a.world, a.run, a.method, dict(item.split("=", 1) for item in a.set))
+        child_main(a.world, a.run, a.method, dict(item.split("=", 1) for item in a.set), a.resume)
         return
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", type=Path, required=True, help="WORK: worlds, runs, results.jsonl, report")
@@ -459,6 +471,9 @@ def main() -> None:
     ap.add_argument("--timeout-min", type=float, default=40.0)
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="sara option for every method")
     ap.add_argument("--keep-runs", action="store_true", help="keep each run's database and features link")
+    ap.add_argument("--resume", action="store_true",
+                    help="continue a run folder a stopped bench left (kept with --keep-runs): the stages it "
+                         "finished are not run again and their earlier times are added to the row")
     ap.add_argument("--report-only", action="store_true")
     ap.add_argument("--reevaluate", action="store_true", help="with --report-only: score the kept models again")
     args = ap.parse_args()
