@@ -53,8 +53,8 @@ def test_a_negative_refinement_count_is_refused():
 
 @pytest.mark.parametrize("setting, num_images, expected", [
     (0, 999, None),       # COLMAP's own loop, whose solver is direct up to 1,000 images anyway
-    (0, 1000, 5000),      # sara's step-by-step loop, direct up to 5,000
-    (0, 10_000, 5000),
+    (0, 1000, 20_000),    # sara's step-by-step loop, direct up to 20,000
+    (0, 10_000, 20_000),
     (2000, 50, 2000),     # the user's limit at any size
 ])
 def test_the_direct_solver_limit_follows_the_size_unless_set(setting, num_images, expected):
@@ -80,7 +80,7 @@ def test_a_large_scene_is_mapped_step_by_step_with_the_direct_solver(monkeypatch
     monkeypatch.setattr(colmap, "database_images", lambda db: dict.fromkeys(range(1200)))
     monkeypatch.setattr(colmap, "verified_graph", lambda db, min_inliers: (0, 0, [], 0))
     mapping._map(make_config("sift-offline", {}).map, tmp_path / "db", tmp_path, tmp_path, 0, False)
-    assert seen and all(limit == 5000 and rounds == 1 and ratio == pytest.approx(1.4) for limit, rounds, ratio in seen)
+    assert seen and all(limit == 20_000 and rounds == 1 and ratio == pytest.approx(1.4) for limit, rounds, ratio in seen)
 
 
 @pytest.mark.parametrize("num_images, expected, refinements", [(40, 1.1, 5), (600, 1.4, 1)])

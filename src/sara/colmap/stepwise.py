@@ -26,8 +26,11 @@ import pycolmap
 logger = logging.getLogger(__name__)
 
 #: sara's own adjustments, and its step-by-step mapping by default, use Ceres' direct sparse solver up
-#: to this many images (COLMAP: 1,000)
-DIRECT_SOLVER_MAX_IMAGES = 5000
+#: to this many images (COLMAP: 1,000). On a converged 9,300-view model of the 10,000-image synthetic
+#: world one global adjustment took 74.7 s with it and did not end in 900 s with the iterative solver;
+#: the first mapping of that world, with the limit at 5,000, did not end in 90 minutes, and with it
+#: above the world's size ended in 81 (lab/notes/SCALE.md). Not measured past 10,000 views.
+DIRECT_SOLVER_MAX_IMAGES = 20000
 #: COLMAP gives up on a first pair whose model stays under min_model_size after this many failed trials
 MIN_INITIAL_REG_TRIALS = 30
 #: rounds of local adjustment and re-triangulation after each view registered into a model being

@@ -190,7 +190,7 @@ class MapConfig:
     ba_direct_max_images: int = option(0, ints(0), """Incremental mapper: largest model whose global bundle
         adjustments use Ceres' direct sparse solver (COLMAP switches to an iterative one above 1,000,
         many times slower). 0: by size, COLMAP's own mapping loop for scenes of fewer than 1,000
-        images, from 1,000 sara drives the mapper step by step with the direct solver up to 5,000. A
+        images, from 1,000 sara drives the mapper step by step with the direct solver up to 20,000. A
         value set by hand always uses that loop; under 1,000 it keeps COLMAP's limit.""")
 
     def __post_init__(self) -> None:
