@@ -80,7 +80,8 @@ def test_a_large_scene_is_mapped_step_by_step_with_the_direct_solver(monkeypatch
     monkeypatch.setattr(colmap, "database_images", lambda db: dict.fromkeys(range(1200)))
     monkeypatch.setattr(colmap, "verified_graph", lambda db, min_inliers: (0, 0, [], 0))
     mapping._map(make_config("sift-offline", {}).map, tmp_path / "db", tmp_path, tmp_path, 0, False)
-    assert seen and all(limit == 20_000 and rounds == 1 and ratio == pytest.approx(1.4) for limit, rounds, ratio in seen)
+    assert seen
+    assert all(limit == 20_000 and rounds == 1 and ratio == pytest.approx(1.4) for limit, rounds, ratio in seen)
 
 
 @pytest.mark.parametrize("num_images, expected, refinements", [(40, 1.1, 5), (600, 1.4, 1)])
