@@ -16,6 +16,8 @@ process tree's RSS and PSS (executor workers). The largest model is then scored 
 true poses by `sara evaluate` (its AUC over all N (N - 1) / 2 pairs). Each (N, method) appends
 one JSON line to WORK/results.jsonl and is skipped when already there (a stopped bench resumes);
 a run past --timeout-min is killed and recorded as stopped, with the stages it had finished.
+With --resume (and a run folder kept by --keep-runs, in a WORK without that row) a stopped run is
+continued in place: the pipeline skips the stages it finished, and the row adds their earlier times.
 
     python lab/scripts/scale_e2e.py --sizes 200,1000 --out WORK
     python lab/scripts/scale_e2e.py --sizes 200 --methods sara,exhaustive --out WORK
