@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections import Counter
 from collections.abc import Callable
 from pathlib import Path
 
@@ -80,6 +81,7 @@ class _Run:
         self.triangulation = opts.get_triangulation()
         fallback = [False, True] if opts.structure_less_registration_fallback else [False]
         self.kinds = [True] if opts.structure_less_registration_only else fallback
+        self.spent_s: Counter[str] = Counter()  # wall seconds of the current model by step, for the log
 
     def all(self) -> None:
         num_images = self.cache.num_images()
@@ -146,19 +148,26 @@ class _Run:
         ba_frames, ba_points = rec.num_reg_frames(), rec.num_points3D()
         local_rounds = min(self.opts.ba_local_max_refinements, CONTINUED_LOCAL_REFINEMENTS) if continued \
             else self.opts.ba_local_max_refinements
+        self.spent_s.clear()
         registered = previous = True
         while registered or previous:
             previous, registered = registered, False
             image_id = -1
+            tic = time.perf_counter()
             for structure_less in self.kinds:  # from 3D points first, then (less reliable) from 2D matches alone
                 image_id, registered = self.register_next(mapper, mapper_options, rec, structure_less)
                 if registered:
                     break
+            self.spent_s["registration"] += time.perf_counter() - tic
             if registered:
+                tic = time.perf_counter()
                 for data_id in rec.image(image_id).frame.image_ids:
                     mapper.triangulate_image(self.triangulation, data_id.id)
+                self.spent_s["triangulation"] += time.perf_counter() - tic
+                tic = time.perf_counter()
                 mapper.iterative_local_refinement(local_rounds, self.opts.ba_local_max_refinement_change,
                                                   mapper_options, self.local_ba, self.triangulation, image_id)
+                self.spent_s["local adjustment"] += time.perf_counter() - tic
                 if self.grown(rec, ba_frames, ba_points) if continued \
                         else self.pipeline.check_run_global_refinement(rec, ba_frames, ba_points):
                     self.refine(mapper, mapper_options)
@@ -173,6 +182,8 @@ class _Run:
                     ba_frames, ba_points = rec.num_reg_frames(), rec.num_points3D()
         if rec.num_reg_frames() > 0 and rec.num_reg_frames() != ba_frames and rec.num_points3D() != ba_points:
             self.refine(mapper, mapper_options)
+        logger.info("map: model of %d views (%s): %s", rec.num_reg_frames(), "continued" if continued else "new",
+                    ", ".join(f"{step} {seconds:.1f} s" for step, seconds in self.spent_s.items()))
         return status.SUCCESS
 
     def grown(self, rec: pycolmap.Reconstruction, ba_frames: int, ba_points: int) -> bool:
@@ -199,8 +210,9 @@ class _Run:
                                            self.opts.ba_global_max_refinement_change, mapper_options,
                                            self.global_ba, self.triangulation, True)
         mapper.filter_frames(mapper_options)
-        logger.info("map: global adjustment of %d views in %.1f s", mapper.reconstruction.num_reg_frames(),
-                    time.perf_counter() - tic)
+        seconds = time.perf_counter() - tic
+        self.spent_s["global adjustment"] += seconds
+        logger.info("map: global adjustment of %d views in %.1f s", mapper.reconstruction.num_reg_frames(), seconds)
 
 
 def _halve_inliers(options: pycolmap.IncrementalMapperOptions) -> None:
