@@ -134,3 +134,14 @@ def test_a_continued_model_is_grown_on_the_lighter_schedule(database: Path, tmp_
     refines.clear()
     stepwise.incremental_mapping(database, images, tmp_path / "again", opts, direct_up_to=5000)
     assert set(local_rounds) == {opts.ba_local_max_refinements} and len(refines) >= 15  # from a first pair
+
+
+def test_each_model_logs_its_time_by_step(database: Path, tmp_path: Path, caplog):
+    """Where a large mapping's time goes is in the log: one line per model with each step's seconds."""
+    with caplog.at_level("INFO", logger="sara.colmap.stepwise"):
+        stepwise.incremental_mapping(database, database.parent / "images", tmp_path / "m", _options(),
+                                     direct_up_to=5000)
+    lines = [r.getMessage() for r in caplog.records if r.getMessage().startswith("map: model of")]
+    assert len(lines) == 1 and lines[0].startswith("map: model of 20 views (new): ")
+    for step in ("registration", "triangulation", "local adjustment", "global adjustment"):
+        assert f"{step} " in lines[0]
