@@ -11,7 +11,7 @@ solver took 103.5 s where the direct one took 6.8 s for the same result (lab/not
 alone, triangulation, local refinement, global refinement by growth, several models, the two
 relaxations of the first pair's thresholds), with two changes: its global adjustments may use the
 direct sparse solver up to `direct_up_to` images, and a model given to continue from (a repair
-round's) is grown on a lighter schedule (`_Run.model`).
+round's) is grown on a lighter schedule (`_Run.model`). Each model's time by step is logged.
 """
 
 from __future__ import annotations
@@ -35,7 +35,9 @@ DIRECT_SOLVER_MAX_IMAGES = 20000
 #: COLMAP gives up on a first pair whose model stays under min_model_size after this many failed trials
 MIN_INITIAL_REG_TRIALS = 30
 #: rounds of local adjustment and re-triangulation after each view registered into a model being
-#: continued (COLMAP: `ba_local_max_refinements`, 2)
+#: continued (COLMAP: `ba_local_max_refinements`, 2). A first mapping keeps COLMAP's two: with one, the
+#: first mapping of the 3,000-image world split into models of at most 1,050 views instead of 1,633
+#: (one run each, lab/notes/SCALE.md)
 CONTINUED_LOCAL_REFINEMENTS = 1
 
 
