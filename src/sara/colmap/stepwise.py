@@ -16,10 +16,11 @@ round's) is grown on a lighter schedule (`_Run.model`). Each model's time by ste
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import time
 from collections import Counter
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pycolmap
@@ -155,21 +156,18 @@ class _Run:
         while registered or previous:
             previous, registered = registered, False
             image_id = -1
-            tic = time.perf_counter()
-            for structure_less in self.kinds:  # from 3D points first, then (less reliable) from 2D matches alone
-                image_id, registered = self.register_next(mapper, mapper_options, rec, structure_less)
-                if registered:
-                    break
-            self.spent_s["registration"] += time.perf_counter() - tic
+            with self.timed("registration"):
+                for structure_less in self.kinds:  # from 3D points first, then (less reliable) from 2D matches alone
+                    image_id, registered = self.register_next(mapper, mapper_options, rec, structure_less)
+                    if registered:
+                        break
             if registered:
-                tic = time.perf_counter()
-                for data_id in rec.image(image_id).frame.image_ids:
-                    mapper.triangulate_image(self.triangulation, data_id.id)
-                self.spent_s["triangulation"] += time.perf_counter() - tic
-                tic = time.perf_counter()
-                mapper.iterative_local_refinement(local_rounds, self.opts.ba_local_max_refinement_change,
-                                                  mapper_options, self.local_ba, self.triangulation, image_id)
-                self.spent_s["local adjustment"] += time.perf_counter() - tic
+                with self.timed("triangulation"):
+                    for data_id in rec.image(image_id).frame.image_ids:
+                        mapper.triangulate_image(self.triangulation, data_id.id)
+                with self.timed("local adjustment"):
+                    mapper.iterative_local_refinement(local_rounds, self.opts.ba_local_max_refinement_change,
+                                                      mapper_options, self.local_ba, self.triangulation, image_id)
                 if self.grown(rec, ba_frames, ba_points) if continued \
                         else self.pipeline.check_run_global_refinement(rec, ba_frames, ba_points):
                     self.refine(mapper, mapper_options)
@@ -206,15 +204,24 @@ class _Run:
                 break  # this first pair does not grow: COLMAP gives it up
         return -1, False
 
-    def refine(self, mapper: pycolmap.IncrementalMapper, mapper_options: pycolmap.IncrementalMapperOptions) -> None:
+    @contextlib.contextmanager
+    def timed(self, step: str) -> Iterator[None]:
+        """Add the wall seconds of the block to `step` in the current model's `spent_s`."""
         tic = time.perf_counter()
-        mapper.iterative_global_refinement(self.opts.ba_global_max_refinements,
-                                           self.opts.ba_global_max_refinement_change, mapper_options,
-                                           self.global_ba, self.triangulation, True)
-        mapper.filter_frames(mapper_options)
-        seconds = time.perf_counter() - tic
-        self.spent_s["global adjustment"] += seconds
-        logger.info("map: global adjustment of %d views in %.1f s", mapper.reconstruction.num_reg_frames(), seconds)
+        try:
+            yield
+        finally:
+            self.spent_s[step] += time.perf_counter() - tic
+
+    def refine(self, mapper: pycolmap.IncrementalMapper, mapper_options: pycolmap.IncrementalMapperOptions) -> None:
+        before_s = self.spent_s["global adjustment"]
+        with self.timed("global adjustment"):
+            mapper.iterative_global_refinement(self.opts.ba_global_max_refinements,
+                                               self.opts.ba_global_max_refinement_change, mapper_options,
+                                               self.global_ba, self.triangulation, True)
+            mapper.filter_frames(mapper_options)
+        logger.info("map: global adjustment of %d views in %.1f s", mapper.reconstruction.num_reg_frames(),
+                    self.spent_s["global adjustment"] - before_s)
 
 
 def _halve_inliers(options: pycolmap.IncrementalMapperOptions) -> None:
