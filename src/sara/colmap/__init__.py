@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import PIL.Image  # noqa: F401 - before pycolmap: its bundled zlib otherwise breaks Pillow's PNG writer (heap corruption)
 
+from .consistency import CONTRADICTION_PX, Agreement, model_agreement
 from .database import (
     cameras_by_image,
     clear_matches,
@@ -81,6 +82,9 @@ __all__ = [
     "CameraInfo",
     "FeatureReader",
     "MappedModels",
+    "Agreement",
+    "CONTRADICTION_PX",
+    "model_agreement",
     "ModelSummary",
     "build_visual_index",
     "camera_priors",

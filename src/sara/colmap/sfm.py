@@ -13,6 +13,7 @@ from pathlib import Path
 import pycolmap
 
 from . import stepwise
+from .consistency import Agreement, agreement
 from .native import native_errors
 
 logger = logging.getLogger(__name__)
@@ -32,6 +33,16 @@ class MappedModels:
 
     reconstructions: dict[int, pycolmap.Reconstruction]
     forward_start: bool = False  # the mapper started from a pair that moved along the viewing direction
+    seed: int | None = None  # the random seed of the mapping that built them
+    agreement_check: Agreement | None = None  # the largest model against its pairs, where checked
+    remaps: int = 0  # mappings under other seeds because the first model was contradicted
+
+    def agreement(self, db_path: Path, min_num_inliers: int) -> Agreement:
+        """How the largest model agrees with the verified pairs between its views (`consistency`)."""
+        if not self.reconstructions:
+            return Agreement(0)
+        largest = max(self.reconstructions.values(), key=lambda rec: rec.num_reg_images())
+        return agreement(largest, db_path, min_num_inliers=min_num_inliers)
 
     @property
     def largest(self) -> int:

@@ -1,0 +1,107 @@
+"""A model against the verified pairs between its views (`sara.colmap.consistency`), and the first
+mapping done again under another seed when its model is contradicted (`sara.mapping._agreeing`)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+import pytest
+
+from sara import colmap, mapping
+from sara.colmap.consistency import agreement
+from sara.config import MapConfig
+
+
+@pytest.fixture()
+def scene(tmp_path: Path) -> tuple[pycolmap.Reconstruction, Path]:
+    """pycolmap's synthetic scene of 6 views around one point cloud, its matches verified in a database."""
+    pycolmap.set_random_seed(1)
+    opts = pycolmap.SyntheticDatasetOptions()
+    opts.num_rigs, opts.num_cameras_per_rig, opts.num_frames_per_rig, opts.num_points3D = 1, 1, 6, 200
+    db_path = tmp_path / "database.db"
+    with pycolmap.Database.open(str(db_path)) as db:
+        rec = pycolmap.synthesize_dataset(opts, db)
+    return rec, db_path
+
+
+def turned(rec: pycolmap.Reconstruction, image_id: int, degrees: float) -> pycolmap.Reconstruction:
+    """A copy of `rec` with one view turned about its camera's y axis."""
+    bent = pycolmap.Reconstruction(rec)
+    frame = bent.frame(bent.image(image_id).frame_id)
+    turn = pycolmap.Rigid3d(pycolmap.Rotation3d(np.array([0.0, np.sin(np.radians(degrees) / 2), 0.0,
+                                                          np.cos(np.radians(degrees) / 2)])), np.zeros(3))
+    frame.rig_from_world = turn * frame.rig_from_world
+    return bent
+
+
+def test_a_true_model_agrees_with_every_pair(scene):
+    rec, db_path = scene
+    check = agreement(rec, db_path)
+    assert check.checked == 15 and check.contradicted == [] and check.share == 0.0
+
+
+def test_a_model_folder_is_checked_as_written(scene, tmp_path):
+    rec, db_path = scene
+    turned(rec, 2, 3.0).write(str(tmp_path))
+    assert len(colmap.model_agreement(tmp_path, db_path).contradicted) == 5
+
+
+def test_a_view_turned_away_contradicts_exactly_its_pairs(scene):
+    rec, db_path = scene
+    name = rec.image(3).name
+    check = agreement(turned(rec, 3, 3.0), db_path)
+    assert check.checked == 15 and len(check.contradicted) == 5
+    assert all(name in pair for pair in check.contradicted)
+    # a turn far below the threshold (4 px at this focal length is about 0.2 degrees) is no contradiction
+    assert agreement(turned(rec, 3, 0.01), db_path).contradicted == []
+
+
+def test_a_contradicted_first_model_is_mapped_again_and_the_agreeing_one_kept(scene, tmp_path, monkeypatch, caplog):
+    """The first mapping's model is contradicted by its pairs: the mapper runs again under the next
+    seed, and the model every pair agrees with is kept, with the seed that built it."""
+    rec, db_path = scene
+    built = [turned(rec, 3, 3.0), rec]
+    seeds = []
+
+    def fake_incremental(conf, db, images, tmp, seed, progress, num_images, input_model, *, forward_start=False):
+        seeds.append(seed)
+        return colmap.MappedModels({0: built[len(seeds) - 1]})
+
+    monkeypatch.setattr(mapping, "_incremental", fake_incremental)
+    with caplog.at_level("WARNING", logger="sara.mapping"):
+        recs, _, _ = mapping._map(MapConfig(), db_path, tmp_path, tmp_path, seed=7, progress=False)
+    assert seeds == [7, 8] and recs.seed == 8 and recs.remaps == 1
+    assert recs.agreement_check.contradicted == [] and recs.reconstructions[0] is rec
+    assert "5 of the 15 verified pairs between the views of the first model contradict it" in caplog.text
+
+
+def test_an_agreeing_first_model_is_not_mapped_again(scene, tmp_path, monkeypatch):
+    rec, db_path = scene
+    seeds = []
+
+    def fake_incremental(conf, db, images, tmp, seed, progress, num_images, input_model, *, forward_start=False):
+        seeds.append(seed)
+        return colmap.MappedModels({0: rec})
+
+    monkeypatch.setattr(mapping, "_incremental", fake_incremental)
+    recs, _, _ = mapping._map(MapConfig(), db_path, tmp_path, tmp_path, seed=0, progress=False)
+    assert seeds == [0] and recs.remaps == 0 and recs.seed == 0
+
+
+def test_when_every_seed_is_contradicted_the_largest_model_is_kept(scene, tmp_path, monkeypatch):
+    rec, db_path = scene
+    small = pycolmap.Reconstruction(turned(rec, 3, 3.0))
+    small.deregister_frame(small.image(6).frame_id)
+    built = [small, turned(rec, 2, 3.0), turned(rec, 4, 5.0)]
+    seeds = []
+
+    def fake_incremental(conf, db, images, tmp, seed, progress, num_images, input_model, *, forward_start=False):
+        seeds.append(seed)
+        return colmap.MappedModels({0: built[len(seeds) - 1]})
+
+    monkeypatch.setattr(mapping, "_incremental", fake_incremental)
+    recs, _, _ = mapping._map(MapConfig(), db_path, tmp_path, tmp_path, seed=0, progress=False)
+    assert seeds == [0, 1, 2] and recs.remaps == mapping.AGREEMENT_REMAPS
+    assert recs.seed == 1 and recs.largest == 6  # the first of the two 6-view models, as contradicted as the other
