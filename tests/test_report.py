@@ -140,6 +140,9 @@ def test_report_content(sara_run: Path):
     assert f"min {score['min_overlap']}" in text and f"min {score['min_inliers']}" in text
     assert text.count("data:image/jpeg;base64,") >= 6
     assert "camera positions seen from above" in text
+    assert data.agreement is not None and data.agreement.checked > 0
+    assert f"verified pairs that contradict it</th><td>{len(data.agreement.contradicted)} of {data.agreement.checked}" \
+        in text
     s = data.scores
     more = [e for e in range(len(s.pairs)) if s.num_inliers_all[e] > s.num_inliers[e]]
     assert more and f"{s.num_inliers[more[0]]} inliers ({s.num_inliers_all[more[0]]} of all matches)" in text

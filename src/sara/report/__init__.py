@@ -65,6 +65,7 @@ class RunData:
     metrics: dict[str, Any] | None = None
     images_root: Path | None = None
     added: dict[Pair, str] = field(default_factory=dict)  # SARA: pair matched after the first round -> role
+    agreement: colmap.Agreement | None = None  # model 0 against the verified pairs between its views
 
     @property
     def config(self) -> dict[str, Any]:
@@ -134,6 +135,8 @@ def load_run(out_dir: Path) -> RunData:
     if models:
         data.model = model.read_model(models[0])
         data.model_sizes = [len(data.model.names)] + [len(colmap.registered_images(m)) for m in models[1:]]
+        if (out_dir / "database.db").exists():
+            data.agreement = colmap.model_agreement(models[0], out_dir / "database.db")
     _load_metrics(data)
     data.added = _added_roles(out_dir)
     data.names = sorted(set(data.names) | _names_in(data))

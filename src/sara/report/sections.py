@@ -11,6 +11,7 @@ from collections import Counter
 
 import numpy as np
 
+from .. import colmap
 from ..export import FORMATS
 from ..io.pairs import Pair
 from ..pipeline.record import time_notes
@@ -212,11 +213,22 @@ def reconstruction(data: RunData) -> str:
             ("mean reprojection error (px)", fmt(float(m.points_error_px.mean()) if len(m.points_error_px) else None)),
             ("3D points per image (median)", f"{np.median(m.num_observations):,.0f}" if len(m.names) else "&ndash;"),
             ("cameras", ", ".join(f"{v} {esc(k)}" for k, v in cams.items()))]
+    if data.agreement is not None:
+        rows.append(("verified pairs that contradict it", _contradicted(data.agreement)))
     left_out = [n for n in data.names if n not in set(m.names)]
     if left_out:
         shown = ", ".join(esc(n) for n in left_out[:20]) + (" ..." if len(left_out) > 20 else "")
         rows.append(("not in model 0", shown))
     return section("Reconstruction", table(rows))
+
+
+def _contradicted(check: colmap.Agreement) -> str:
+    """The pairs whose matches lie off the model's epipolar lines, of those between its views."""
+    text = f"{len(check.contradicted)} of {check.checked}"
+    if check.contradicted:
+        shown = ", ".join(f"{esc(a)}&ndash;{esc(b)}" for a, b in check.contradicted[:5])
+        text += f" ({shown}{' ...' if len(check.contradicted) > 5 else ''}): the model may be bent there"
+    return text
 
 
 def evaluation(data: RunData) -> str:
