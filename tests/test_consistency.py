@@ -90,6 +90,19 @@ def test_an_agreeing_first_model_is_not_mapped_again(scene, tmp_path, monkeypatc
     assert seeds == [0] and recs.remaps == 0 and recs.seed == 0
 
 
+def test_remaps_can_be_turned_off(scene, tmp_path, monkeypatch):
+    rec, db_path = scene
+    seeds = []
+
+    def fake_incremental(conf, db, images, tmp, seed, progress, num_images, input_model, *, forward_start=False):
+        seeds.append(seed)
+        return colmap.MappedModels({0: turned(rec, 3, 3.0)})
+
+    monkeypatch.setattr(mapping, "_incremental", fake_incremental)
+    recs, _, _ = mapping._map(MapConfig(contradicted_remaps=0), db_path, tmp_path, tmp_path, seed=0, progress=False)
+    assert seeds == [0] and recs.remaps == 0 and len(recs.agreement_check.contradicted) == 5
+
+
 def test_when_every_seed_is_contradicted_the_largest_model_is_kept(scene, tmp_path, monkeypatch):
     rec, db_path = scene
     small = pycolmap.Reconstruction(turned(rec, 3, 3.0))
@@ -103,5 +116,5 @@ def test_when_every_seed_is_contradicted_the_largest_model_is_kept(scene, tmp_pa
 
     monkeypatch.setattr(mapping, "_incremental", fake_incremental)
     recs, _, _ = mapping._map(MapConfig(), db_path, tmp_path, tmp_path, seed=0, progress=False)
-    assert seeds == [0, 1, 2] and recs.remaps == mapping.AGREEMENT_REMAPS
+    assert seeds == [0, 1, 2] and recs.remaps == MapConfig().contradicted_remaps == 2
     assert recs.seed == 1 and recs.largest == 6  # the first of the two 6-view models, as contradicted as the other

@@ -115,9 +115,10 @@ def test_a_model_mapped_before_the_setting_existed_is_not_mapped_again():
     from sara.io import fingerprint
 
     conf = make_config("sift-offline", {}).map
-    added = ("ba_global_growth", "ba_global_refinements", "ba_direct_max_images")
+    added = ("ba_global_growth", "ba_global_refinements", "ba_direct_max_images", "contradicted_remaps")
     before = {k: v for k, v in conf.__dict__.items() if k not in added}
     assert mapping.state_key(conf, 0, "up") == fingerprint({"conf": before, "seed": 0, "upstream": "up"})
-    for setting in ({"ba_global_growth": 1.4}, {"ba_global_refinements": 1}, {"ba_direct_max_images": 3000}):
+    for setting in ({"ba_global_growth": 1.4}, {"ba_global_refinements": 1}, {"ba_direct_max_images": 3000},
+                    {"contradicted_remaps": 0}):
         by_hand = dataclasses.replace(conf, **setting)
         assert mapping.state_key(by_hand, 0, "up") != mapping.state_key(conf, 0, "up")

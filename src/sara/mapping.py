@@ -144,13 +144,11 @@ def _forward_start(conf: MapConfig, db_path: Path, images_root: Path, tmp: Path,
 #: (`colmap.consistency`) is mapped again under another random seed. On the 1,000-image synthetic
 #: street two bent first models had 1.9% and 3.2%, good ones from the same matches none.
 CONTRADICTED_SHARE = 0.005
-#: the most mappings under other seeds when the first model is contradicted (each costs a first mapping)
-AGREEMENT_REMAPS = 2
 
 
 def _agreeing(conf: MapConfig, db_path: Path, images_root: Path, tmp: Path, seed: int, progress: bool,
               num_images: int, first: colmap.MappedModels, min_num_inliers: int) -> colmap.MappedModels:
-    """Map again under the next seeds, at most `AGREEMENT_REMAPS` times, while the first mapping's
+    """Map again under the next seeds, at most `map.contradicted_remaps` times, while the first mapping's
     largest model is contradicted by its own verified pairs (`_contradicted`); keeps the best.
 
     The incremental mapper's random draws (first pair, registrations) can bend a model where the
@@ -160,7 +158,7 @@ def _agreeing(conf: MapConfig, db_path: Path, images_root: Path, tmp: Path, seed
     bent, median view rotation error 1.2 and 3.5 degrees; seed 3 good, 0.08)."""
     best, best_check = first, first.agreement(db_path, min_num_inliers)
     best.seed, remaps = seed, 0
-    while _contradicted(best_check) and remaps < AGREEMENT_REMAPS:
+    while _contradicted(best_check) and remaps < conf.contradicted_remaps:
         remaps += 1
         logger.warning("map: %d of the %d verified pairs between the views of the first model contradict it "
                        "(their matches lie more than %.0f px off its epipolar lines): mapping again under seed %d",
@@ -363,7 +361,8 @@ def _model_intact(out_dir: Path, sparse: Path) -> bool:
 
 #: settings added after runs were made: left out of the key at these values, so that a finished
 #: model is not mapped again after an upgrade for a setting it could not have had
-ADDED_LATER: dict[str, Any] = {"ba_global_growth": 0.0, "ba_global_refinements": 0, "ba_direct_max_images": 0}
+ADDED_LATER: dict[str, Any] = {"ba_global_growth": 0.0, "ba_global_refinements": 0, "ba_direct_max_images": 0,
+                               "contradicted_remaps": 2}
 
 
 def state_key(conf: MapConfig, seed: int, upstream_key: str) -> str:
