@@ -12,6 +12,7 @@ import pytest
 from sara import colmap, mapping
 from sara.colmap.consistency import agreement
 from sara.config import MapConfig
+from sara.io import records
 
 
 @pytest.fixture()
@@ -118,3 +119,22 @@ def test_when_every_seed_is_contradicted_the_largest_model_is_kept(scene, tmp_pa
     recs, _, _ = mapping._map(MapConfig(), db_path, tmp_path, tmp_path, seed=0, progress=False)
     assert seeds == [0, 1, 2] and recs.remaps == MapConfig().contradicted_remaps == 2
     assert recs.seed == 1 and recs.largest == 6  # the first of the two 6-view models, as contradicted as the other
+
+
+def test_the_stage_record_keeps_the_first_models_check_through_a_continuation(scene, tmp_path, monkeypatch):
+    """`run.json` says which seed built the first model and how many pairs contradicted it; a model
+    continued from it by a later round keeps that in its record."""
+    rec, db_path = scene
+    built = [turned(rec, 3, 3.0), rec]
+
+    def fake_incremental(conf, db, images, tmp, seed, progress, num_images, input_model, *, forward_start=False):
+        return colmap.MappedModels({0: built.pop(0)})
+
+    monkeypatch.setattr(mapping, "_incremental", fake_incremental)
+    mapping.run(MapConfig(), db_path, tmp_path, tmp_path / "out", seed=0, progress=False)
+    first = records.done_info(tmp_path / "out", "map")
+    assert {k: first[k] for k in mapping.FIRST_MODEL_KEYS} == {
+        "seed": 1, "remaps": 1, "first_model_pairs_checked": 15, "first_model_pairs_contradicted": 0}
+    continued = mapping._first_model_check(colmap.MappedModels({0: rec}), records.read_record(tmp_path / "out", "map"))
+    assert continued == {k: first[k] for k in mapping.FIRST_MODEL_KEYS}
+    assert mapping._first_model_check(colmap.MappedModels({0: rec}), None) == {}

@@ -78,14 +78,25 @@ def run(conf: MapConfig, db_path: Path, images_root: Path, out_dir: Path, *, see
     info = {"time_s": elapsed, "num_components": len(sizes), "component_sizes": sizes,
             "num_registered": sizes[0], "num_images": num_images, "forward_start": recs.forward_start,
             "continued": input_model is not None and conf.mapper == "incremental"}
-    if recs.agreement_check is not None:
-        check = recs.agreement_check
-        info.update(checked_pairs=check.checked, contradicted_pairs=len(check.contradicted), remaps=recs.remaps,
-                    seed=recs.seed)
+    info.update(_first_model_check(recs, previous if info["continued"] else None))
     records.mark_done(out_dir, STAGE, key, info, outputs={"sparse": model_digest(sparse)})
     if len(sizes) > 1:
         logger.warning("map: the scene split into %d models of %s images", len(sizes), sizes)
     return sparse
+
+
+#: what the record says of the first mapping's check (`_agreeing`); a continued model keeps it
+FIRST_MODEL_KEYS = ("seed", "remaps", "first_model_pairs_checked", "first_model_pairs_contradicted")
+
+
+def _first_model_check(recs: colmap.MappedModels, previous: dict[str, Any] | None) -> dict[str, Any]:
+    """The seed that built the first model, the mappings under other seeds, and its pairs checked and
+    contradicting it: from this mapping, or for a continued model from the record it continued."""
+    if recs.agreement_check is not None:
+        return {"seed": recs.seed, "remaps": recs.remaps, "first_model_pairs_checked": recs.agreement_check.checked,
+                "first_model_pairs_contradicted": len(recs.agreement_check.contradicted)}
+    earlier = (previous or {}).get("info") or {}
+    return {k: earlier[k] for k in FIRST_MODEL_KEYS if k in earlier}
 
 
 def _map(conf: MapConfig, db_path: Path, images_root: Path, tmp: Path, seed: int,
