@@ -181,7 +181,7 @@ def _agreeing(conf: MapConfig, db_path: Path, images_root: Path, tmp: Path, seed
                              forward_start=first.forward_start)
         again.forward_start, again.seed = first.forward_start, seed + remaps
         check = again.agreement(db_path, min_num_inliers)
-        logger.info("map: under seed %d the largest model holds %d views, %d of %d pairs contradict it",
+        logger.warning("map: under seed %d the largest model holds %d views, %d of %d pairs contradict it",
                     seed + remaps, again.largest, len(check.contradicted), check.checked)
         if _better(again, check, best, best_check):
             best, best_check = again, check
