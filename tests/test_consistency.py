@@ -55,6 +55,7 @@ def test_a_view_turned_away_contradicts_exactly_its_pairs(scene):
     check = agreement(turned(rec, 3, 3.0), db_path)
     assert check.checked == 15 and len(check.contradicted) == 5
     assert all(name in pair for pair in check.contradicted)
+    assert check.most_contradicted_view() == name and agreement(rec, db_path).most_contradicted_view() is None
     # a turn far below the threshold (4 px at this focal length is about 0.2 degrees) is no contradiction
     assert agreement(turned(rec, 3, 0.01), db_path).contradicted == []
 
@@ -66,23 +67,27 @@ def test_a_contradicted_first_model_is_mapped_again_and_the_agreeing_one_kept(sc
     built = [turned(rec, 3, 3.0), rec]
     seeds = []
 
-    def fake_incremental(conf, db, images, tmp, seed, progress, num_images, input_model, *, forward_start=False):
+    starts = []
+
+    def fake_incremental(conf, db, images, tmp, seed, progress, num_images, input_model, **kwargs):
         seeds.append(seed)
+        starts.append(kwargs.get("first_image"))
         return colmap.MappedModels({0: built[len(seeds) - 1]})
 
     monkeypatch.setattr(mapping, "_incremental", fake_incremental)
     with caplog.at_level("WARNING", logger="sara.mapping"):
         recs, _, _ = mapping._map(MapConfig(), db_path, tmp_path, tmp_path, seed=7, progress=False)
     assert seeds == [7, 8] and recs.seed == 8 and recs.remaps == 1
+    assert starts == [None, rec.image(3).name]  # the remap starts from the view the contradicting pairs share
     assert recs.agreement_check.contradicted == [] and recs.reconstructions[0] is rec
-    assert "5 of the 15 verified pairs between the views of the first model contradict it" in caplog.text
+    assert "5 of the 15 verified pairs between the views of the largest model contradict it" in caplog.text
 
 
 def test_an_agreeing_first_model_is_not_mapped_again(scene, tmp_path, monkeypatch):
     rec, db_path = scene
     seeds = []
 
-    def fake_incremental(conf, db, images, tmp, seed, progress, num_images, input_model, *, forward_start=False):
+    def fake_incremental(conf, db, images, tmp, seed, progress, num_images, input_model, **kwargs):
         seeds.append(seed)
         return colmap.MappedModels({0: rec})
 
@@ -95,7 +100,7 @@ def test_remaps_can_be_turned_off(scene, tmp_path, monkeypatch):
     rec, db_path = scene
     seeds = []
 
-    def fake_incremental(conf, db, images, tmp, seed, progress, num_images, input_model, *, forward_start=False):
+    def fake_incremental(conf, db, images, tmp, seed, progress, num_images, input_model, **kwargs):
         seeds.append(seed)
         return colmap.MappedModels({0: turned(rec, 3, 3.0)})
 
@@ -111,7 +116,7 @@ def test_when_every_seed_is_contradicted_the_largest_model_is_kept(scene, tmp_pa
     built = [small, turned(rec, 2, 3.0), turned(rec, 4, 5.0)]
     seeds = []
 
-    def fake_incremental(conf, db, images, tmp, seed, progress, num_images, input_model, *, forward_start=False):
+    def fake_incremental(conf, db, images, tmp, seed, progress, num_images, input_model, **kwargs):
         seeds.append(seed)
         return colmap.MappedModels({0: built[len(seeds) - 1]})
 
@@ -127,7 +132,7 @@ def test_the_stage_record_keeps_the_first_models_check_through_a_continuation(sc
     rec, db_path = scene
     built = [turned(rec, 3, 3.0), rec]
 
-    def fake_incremental(conf, db, images, tmp, seed, progress, num_images, input_model, *, forward_start=False):
+    def fake_incremental(conf, db, images, tmp, seed, progress, num_images, input_model, **kwargs):
         return colmap.MappedModels({0: built.pop(0)})
 
     monkeypatch.setattr(mapping, "_incremental", fake_incremental)

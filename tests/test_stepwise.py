@@ -145,3 +145,26 @@ def test_each_model_logs_its_time_by_step(database: Path, tmp_path: Path, caplog
     assert len(lines) == 1 and lines[0].startswith("map: model of 20 views (new): ")
     for step in ("registration", "triangulation", "local adjustment", "global adjustment"):
         assert f"{step} " in lines[0]
+
+
+def test_the_first_model_starts_from_the_given_image_and_the_others_still_start(tmp_path: Path):
+    """Two groups of ten views with no match between them: the mapper's own first pair lies in the
+    second group; given an image of the first, the first model is that group's and the second group
+    still gets its model (COLMAP's `init_image_id1` would hold every model to the given image)."""
+    db_path = tmp_path / "database.db"
+    synthetic_database(db_path, 20, 400)
+    (tmp_path / "images").mkdir()
+    with pycolmap.Database.open(str(db_path)) as db:
+        for a in range(1, 11):
+            for b in range(11, 21):
+                db.delete_two_view_geometry(a, b)
+                db.delete_matches(a, b)
+
+    def groups(first_image_id):
+        models = stepwise.incremental_mapping(db_path, tmp_path / "images", tmp_path / f"from-{first_image_id}",
+                                              _options(), direct_up_to=0, first_image_id=first_image_id)
+        return [sorted(rec.reg_image_ids()) for rec in models.values()]
+
+    second, first = list(range(11, 21)), list(range(1, 11))
+    assert groups(None) == [second, first]
+    assert groups(3) == [first, second]

@@ -16,6 +16,7 @@ good models from the same matches contradicted none (lab/notes/SCALE.md).
 
 from __future__ import annotations
 
+from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -37,6 +38,12 @@ class Agreement:
     @property
     def share(self) -> float:
         return len(self.contradicted) / self.checked if self.checked else 0.0
+
+    def most_contradicted_view(self) -> str | None:
+        """The view in the most contradicting pairs (the first by name among equals), None without any:
+        where a bent model's seam is."""
+        counts = Counter(view for pair in self.contradicted for view in pair)
+        return min(counts, key=lambda view: (-counts[view], view)) if counts else None
 
 
 def model_agreement(model: Path, db_path: Path, *, min_num_inliers: int = 15,

@@ -14,6 +14,7 @@ import pycolmap
 
 from . import stepwise
 from .consistency import Agreement, agreement
+from .database_queries import database_images
 from .native import native_errors
 
 logger = logging.getLogger(__name__)
@@ -58,7 +59,7 @@ def incremental_mapping(
     abs_pose_min_num_inliers: int, abs_pose_min_inlier_ratio: float, num_threads: int = -1,
     on_next_image: Callable[[], None] | None = None, input_path: Path | None = None,
     forward_start: bool = False, ba_global_ratio: float | None = None, ba_global_refinements: int | None = None,
-    direct_solver_up_to: int | None = None,
+    direct_solver_up_to: int | None = None, first_image: str | None = None,
 ) -> MappedModels:
     """COLMAP's incremental mapper; with `input_path` it continues from that model (registers the
     images it lacks, then bundle-adjusts) instead of starting from an empty one.
@@ -73,6 +74,9 @@ def incremental_mapping(
     `direct_solver_up_to`: the mapping is driven step by step (`stepwise`) so that its global
     adjustments use Ceres' direct sparse solver up to this many images (None: COLMAP's pipeline,
     iterative above 1,000).
+    `first_image`: the first model starts from this image (by name) and the partner the mapper picks
+    for it; the mapping is then driven step by step (direct solver as COLMAP sets it unless
+    `direct_solver_up_to` says more).
     """
     opts = pycolmap.IncrementalPipelineOptions()
     if forward_start:
@@ -89,10 +93,11 @@ def incremental_mapping(
     opts.mapper.random_seed = seed
     opts.triangulation.random_seed = seed
     with native_errors("map the matches (incremental mapper)", Path(out_dir)):
-        if direct_solver_up_to is not None:
+        if direct_solver_up_to is not None or first_image is not None:
+            first_id = None if first_image is None else database_images(Path(db_path))[first_image]
             return MappedModels(stepwise.incremental_mapping(
-                Path(db_path), Path(image_dir), Path(out_dir), opts, direct_up_to=direct_solver_up_to,
-                on_next_image=on_next_image, input_path=input_path))
+                Path(db_path), Path(image_dir), Path(out_dir), opts, direct_up_to=direct_solver_up_to or 0,
+                on_next_image=on_next_image, input_path=input_path, first_image_id=first_id))
         return MappedModels(pycolmap.incremental_mapping(
             str(db_path), str(image_dir), str(out_dir), options=opts,
             input_path=str(input_path) if input_path is not None else "",

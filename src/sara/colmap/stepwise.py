@@ -17,6 +17,7 @@ round's) is grown on a lighter schedule (`_Run.model`). Each model's time by ste
 from __future__ import annotations
 
 import contextlib
+import copy
 import logging
 import time
 from collections import Counter
@@ -44,9 +45,13 @@ CONTINUED_LOCAL_REFINEMENTS = 1
 
 def incremental_mapping(db_path: Path, image_dir: Path, out_dir: Path, opts: pycolmap.IncrementalPipelineOptions,
                         *, direct_up_to: int, on_next_image: Callable[[], None] | None = None,
-                        input_path: Path | None = None) -> dict[int, pycolmap.Reconstruction]:
+                        input_path: Path | None = None, first_image_id: int | None = None,
+                        ) -> dict[int, pycolmap.Reconstruction]:
     """Map `db_path` as `pycolmap.incremental_mapping` does, the global adjustments allowed Ceres'
-    direct sparse solver up to `direct_up_to` images; each model is written to `out_dir/<index>`."""
+    direct sparse solver up to `direct_up_to` images; each model is written to `out_dir/<index>`.
+    With `first_image_id` the first model starts from that image and the partner COLMAP picks for
+    it (the later models as COLMAP starts them; COLMAP's own `init_image_id1` would hold every model
+    to that image, so the views it cannot reach got no model)."""
     cache_options = pycolmap.DatabaseCacheOptions()
     cache_options.min_num_matches = opts.min_num_matches
     cache_options.ignore_watermarks = opts.ignore_watermarks
@@ -55,7 +60,7 @@ def incremental_mapping(db_path: Path, image_dir: Path, out_dir: Path, opts: pyc
     manager = pycolmap.ReconstructionManager()
     if input_path is not None:
         manager.read(str(input_path))
-    run = _Run(opts, cache, manager, direct_up_to, on_next_image)
+    run = _Run(opts, cache, manager, direct_up_to, on_next_image, first_image_id)
     if cache.num_images() > 0:
         run.all()
     models = {}
@@ -74,9 +79,14 @@ class _Run:
 
     def __init__(self, opts: pycolmap.IncrementalPipelineOptions, cache: pycolmap.DatabaseCache,
                  manager: pycolmap.ReconstructionManager, direct_up_to: int,
-                 on_next_image: Callable[[], None] | None) -> None:
+                 on_next_image: Callable[[], None] | None, first_image_id: int | None = None) -> None:
         self.opts, self.cache, self.manager, self.on_next_image = opts, cache, manager, on_next_image
         self.pipeline = pycolmap.IncrementalPipeline(opts, cache, manager)
+        self.first_pipeline = None  # starts the first new model from a given image, then is dropped
+        if first_image_id is not None:
+            first = copy.copy(opts)
+            first.init_image_id1, first.init_image_id2 = first_image_id, -1
+            self.first_pipeline = pycolmap.IncrementalPipeline(first, cache, manager)
         self.global_ba = opts.get_global_bundle_adjustment()
         self.global_ba.ceres.max_num_images_direct_sparse_cpu_solver = max(
             direct_up_to, self.global_ba.ceres.max_num_images_direct_sparse_cpu_solver)
@@ -145,7 +155,7 @@ class _Run:
         mapper.begin_reconstruction(rec)
         continued = rec.num_reg_frames() > 0
         if not continued:
-            start = self.pipeline.initialize_reconstruction(mapper, mapper_options, rec)
+            start = self.start(mapper, mapper_options, rec)
             if start != status.SUCCESS:
                 return start
         ba_frames, ba_points = rec.num_reg_frames(), rec.num_points3D()
@@ -185,6 +195,16 @@ class _Run:
         logger.info("map: model of %d views (%s): %s", rec.num_reg_frames(), "continued" if continued else "new",
                     ", ".join(f"{step} {seconds:.1f} s" for step, seconds in self.spent_s.items()))
         return status.SUCCESS
+
+    def start(self, mapper: pycolmap.IncrementalMapper, mapper_options: pycolmap.IncrementalMapperOptions,
+              rec: pycolmap.Reconstruction) -> pycolmap.IncrementalPipelineStatus:
+        """The first pair of a new model: from the given first image once, else as COLMAP picks it."""
+        if self.first_pipeline is not None:
+            pipeline, self.first_pipeline = self.first_pipeline, None
+            start = pipeline.initialize_reconstruction(mapper, mapper_options, rec)
+            if start != pycolmap.IncrementalPipelineStatus.NO_INITIAL_PAIR:
+                return start
+        return self.pipeline.initialize_reconstruction(mapper, mapper_options, rec)
 
     def grown(self, rec: pycolmap.Reconstruction, ba_frames: int, ba_points: int) -> bool:
         """COLMAP's growth test for a global adjustment without its every-500-views and
