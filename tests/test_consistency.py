@@ -71,14 +71,15 @@ def test_a_contradicted_first_model_is_mapped_again_and_the_agreeing_one_kept(sc
 
     def fake_incremental(conf, db, images, tmp, seed, progress, num_images, input_model, **kwargs):
         seeds.append(seed)
-        starts.append(kwargs.get("first_image"))
+        starts.append((kwargs.get("first_image"), conf.num_threads))
         return colmap.MappedModels({0: built[len(seeds) - 1]})
 
     monkeypatch.setattr(mapping, "_incremental", fake_incremental)
     with caplog.at_level("WARNING", logger="sara.mapping"):
         recs, _, _ = mapping._map(MapConfig(), db_path, tmp_path, tmp_path, seed=7, progress=False)
     assert seeds == [7, 8] and recs.seed == 8 and recs.remaps == 1
-    assert starts == [None, rec.image(3).name]  # the remap starts from the view the contradicting pairs share
+    # the remap starts from the view the contradicting pairs share, on one thread
+    assert starts == [(None, MapConfig().num_threads), (rec.image(3).name, mapping.REMAP_THREADS)]
     assert recs.agreement_check.contradicted == [] and recs.reconstructions[0] is rec
     assert "5 of the 15 verified pairs between the views of the largest model contradict it" in caplog.text
 
