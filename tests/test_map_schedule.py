@@ -72,7 +72,7 @@ def test_a_large_scene_is_mapped_step_by_step_with_the_direct_solver(monkeypatch
 
     seen: list = []
 
-    def fake_stepwise(db, images, out, opts, *, direct_up_to, on_next_image, input_path):
+    def fake_stepwise(db, images, out, opts, *, direct_up_to, on_next_image, input_path, first_image_id=None):
         seen.append((direct_up_to, opts.ba_global_max_refinements, opts.ba_global_frames_ratio))
         return {}
 
