@@ -160,24 +160,25 @@ CONTRADICTED_SHARE = 0.005
 
 #: threads of a mapping done again because the first model was contradicted. With one thread the
 #: mapper's result depends on its seed alone: on the 1,000-image synthetic street's first graph six
-#: seeds gave six good models single-threaded (0 of 2,052 pairs contradicting, 92-102 s on a loaded
-#: 2-core machine), where with both cores of the idle machine seeds 0 and 1 gave bent ones and the
-#: same seed under load a good one (lab/notes/SCALE.md)
+#: seeds gave six good models single-threaded (0 of 2,052 pairs contradicting), where with both cores
+#: of the idle machine seeds 0 and 1 gave bent ones and the same seed under load a good one; on the
+#: idle 2-core machine seed 0 took 118 s on one thread, 144 s (bent) on two (lab/notes/SCALE.md)
 REMAP_THREADS = 1
 
 
 def _agreeing(conf: MapConfig, db_path: Path, images_root: Path, tmp: Path, seed: int, progress: bool,
               num_images: int, first: colmap.MappedModels, min_num_inliers: int) -> colmap.MappedModels:
     """Map again, at most `map.contradicted_remaps` times, while the first mapping's largest model is
-    contradicted by its own verified pairs (`_contradicted`): each time under the next seed, the
-    first model started from the view in most of the contradicting pairs; keeps the best.
+    contradicted by its own verified pairs (`_contradicted`): each time under the next seed, on
+    `REMAP_THREADS` threads, the first model started from the view in most of the contradicting
+    pairs; keeps the best.
 
-    The incremental mapper can bend a model where the views pass a place twice: it grows along the
-    path, drift builds up, and by the time it comes back the pairs that would close the loop lie too
-    far off to join a track, so nothing in the mapper sees them. Started at that place, the model
-    holds both passes before any drift (1,000-image synthetic street, first graph of 2,421 pairs:
-    seeds 0 and 1 bent, median view rotation error 1.2 and 3.5 degrees; seed 3 good, 0.08; seed 0
-    started from the view in most contradicting pairs good, 0.08, none contradicting it)."""
+    The incremental mapper can bend a model where the views pass a place twice: the pairs that
+    would close the loop never join a track, so nothing in the mapper sees them (1,000-image
+    synthetic street, first graph of 2,421 pairs, both cores: seeds 0 and 1 bent, median view
+    rotation error 1.2 and 3.5 degrees). The start at the seam is meant to hold both passes before
+    drift builds up; it gave unbent models twice, but under a load that left the plain remap unbent
+    as well, so what is shown is the single thread's effect (`REMAP_THREADS`)."""
     best, best_check = first, first.agreement(db_path, min_num_inliers)
     best.seed, remaps, check = seed, 0, best_check
     while _contradicted(best_check) and remaps < conf.contradicted_remaps:
