@@ -91,7 +91,8 @@ def test_the_mapper_starts_from_forward_motion_when_nothing_else_starts(monkeypa
 
     monkeypatch.setattr(colmap, "incremental_mapping", fake_mapping)
     monkeypatch.setattr(colmap, "database_images", lambda db: {})
-    monkeypatch.setattr(MappedModels, "agreement", lambda self, db, n: colmap.Agreement(0))  # the check: test_consistency.py
+    # the check itself: test_consistency.py
+    monkeypatch.setattr(MappedModels, "agreement", lambda self, db, n: colmap.Agreement(0))
     recs, _, _ = mapping._map(make_config("sift-offline", {}).map, tmp_path / "db", tmp_path, tmp_path, 0, False)
     assert calls == [False, True] and recs.forward_start and recs.largest == 7
 
@@ -121,7 +122,8 @@ def test_a_first_model_far_smaller_than_the_joined_views_is_mapped_again_from_a_
 
     monkeypatch.setattr(colmap, "incremental_mapping", fake_mapping)
     monkeypatch.setattr(colmap, "database_images", lambda db: {})
-    monkeypatch.setattr(MappedModels, "agreement", lambda self, db, n: colmap.Agreement(0))  # the check: test_consistency.py
+    # the check itself: test_consistency.py
+    monkeypatch.setattr(MappedModels, "agreement", lambda self, db, n: colmap.Agreement(0))
     monkeypatch.setattr(colmap, "verified_graph", lambda db, min_inliers: (100, joined, [joined], 200))
     recs, _, _ = mapping._map(make_config("sift-offline", {}).map, tmp_path / "db", tmp_path, tmp_path, 0, False)
     assert calls + [recs.largest] == expected
