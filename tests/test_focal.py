@@ -161,6 +161,7 @@ def _pair_context(out: Path, names: list[str], tree_overlap: str = "auto"):
                        out_dir=out, conf=conf, focal_estimate=_estimate(out))
 
 
+@pytest.mark.slow  # 4 s; the long-lens and turntable cases stay in the default suite
 def test_quarter_size_frames_of_a_wide_lens_give_a_sound_estimate(tmp_path: Path):
     """fountain-P11 at a quarter of its size (384 x 256, like small video frames without EXIF): the
     true focal length is 345 px (a 58-degree field of view), COLMAP's prior 461 px."""

@@ -184,7 +184,9 @@ def uninterrupted(scene, first_run, tmp_path_factory) -> dict:
     return _state(reference)
 
 
-@pytest.mark.parametrize("marker", ["update.json", "pairs.next", "swap"])
+# one stop in the default suite; the other two (8 s) with -m slow, for the suite's 5 minutes
+@pytest.mark.parametrize("marker", [pytest.param("update.json", marks=pytest.mark.slow), "pairs.next",
+                                    pytest.param("swap", marks=pytest.mark.slow)])
 def test_killed_update_then_rerun_gives_the_uninterrupted_result(marker, scene, copy_of_first, uninterrupted,
                                                                  monkeypatch, run_cli):
     """Stopped once the update's ledger exists (copies made, nothing extracted yet), between the

@@ -376,8 +376,11 @@ def _match_pair(extract_conf: ExtractConfig, images: list[np.ndarray]) -> tuple[
     return len(matches), int(inliers.sum())
 
 
+# DISK's real weights (5 s) with -m slow, for the suite's 5 minutes; its network runs in the default suite
+# with random weights (test_lightglue_random_weights)
 @pytest.mark.parametrize("backend, glue, min_matches", [
-    ("aliked-n16", "lightglue-aliked", 300), ("disk", "lightglue-disk", 300), ("xfeat", "lighterglue-xfeat", 150),
+    ("aliked-n16", "lightglue-aliked", 300), pytest.param("disk", "lightglue-disk", 300, marks=pytest.mark.slow),
+    ("xfeat", "lighterglue-xfeat", 150),
 ])
 def test_real_weights_match_an_overlapping_pair(backend, glue, min_matches):
     _real_weights(backend, glue)

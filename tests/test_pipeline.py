@@ -47,6 +47,7 @@ def test_real_scene_fountain_exhaustive(tmp_path: Path):
     assert report.metrics["auc"]["5"] >= 0.90
 
 
+@pytest.mark.slow  # 9 s on a shared scene; the repair's parts have unit tests in tests/test_repair.py
 def test_real_scene_temple_sparse_ring_repair_round_continues_the_model(tmp_path: Path, caplog):
     """templeSparseRing's first model leaves 3 views out (13 + 4); the repair round's pairs must join
     them to the model it continues, by continuing it."""

@@ -121,6 +121,7 @@ def test_image_observation_ids_are_the_truth(world):
     assert np.mean(obs.point_ids < 0) == pytest.approx(conf.outlier_fraction, abs=0.05)
 
 
+@pytest.mark.slow  # 11 s; the selection at scale is measured by lab/scripts/scale_bench.py
 def test_selection_on_a_small_world_is_connected_and_true(world, tmp_path):
     """SARA's pair selection, called as the pipeline calls it, on the world."""
     from sara.bench.world import selection_context

@@ -250,6 +250,7 @@ def test_matching_checks_room_for_every_pair_first(finished_run, images, monkeyp
     assert_kept(before, finished_run, PREVIOUS_OUTPUTS)
 
 
+@pytest.mark.slow  # 8 s; the room checks before writing and before matching stay in the default suite
 def test_disk_filling_during_extraction(images, tmp_path, monkeypatch, run_cli):
     """Another program fills the disk while COLMAP extracts: the extraction is stopped before the
     database cannot grow (COLMAP would abort the process with a stack dump); one line, exit 4; the

@@ -33,7 +33,8 @@ def _used(result) -> int:
     return int(line.split()[1])
 
 
-@pytest.mark.parametrize("case", ["EXIF applied", "3dgs export"])
+# the export case takes 9 s: slow, for the default suite's 5 minutes (run with -m slow)
+@pytest.mark.parametrize("case", ["EXIF applied", pytest.param("3dgs export", marks=pytest.mark.slow)])
 def test_output_folder_inside_the_image_folder(case, images, tmp_path, run_cli):
     """OUT inside IMAGES with --recursive: sara's upright copies (or the export's images) under OUT
     are never taken for input. Issue 30: the second run refused ("other images"), and with

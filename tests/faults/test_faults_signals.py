@@ -21,7 +21,11 @@ SIGNALS = {
 }
 
 
-@pytest.mark.parametrize("case", list(SIGNALS))
+# each signal and each stage stays in the default suite; two repeats of a pair of them are slow
+SLOW = {"SIGTERM during pair selection", "SIGHUP during mapping"}
+
+
+@pytest.mark.parametrize("case", [pytest.param(c, marks=pytest.mark.slow) if c in SLOW else c for c in SIGNALS])
 def test_signal_is_one_clean_line_and_resumes(case, finished_run, images, finished_run_template, run_cli):
     signum, code, stage = SIGNALS[case]
     if stage == "pairs":
