@@ -52,6 +52,22 @@ def test_auto_uses_the_order_only_when_the_looks_agree():
     assert not sequence.detect(names, desc, SequenceConfig(mode="no")).used
 
 
+def test_a_long_walk_over_the_same_streets_counts_at_ten_times_chance():
+    """Three passes over one path: most nearest neighbours lie on the other passes, so the agreement is
+    below min_agreement, yet far above what a shuffled order gives; for 40 frames the bar stays 0.5."""
+    rng = np.random.default_rng(0)
+    path = np.cumsum(rng.normal(size=(300, 64)), axis=0)
+    desc = np.concatenate([path + rng.normal(scale=0.3, size=path.shape) for _ in range(3)])
+    names, conf = _names(900), SequenceConfig(mode="auto")
+    found = sequence.detect(names, desc, conf)
+    chance = sequence.chance_agreement(found.orders, len(names), conf.window)
+    assert chance == pytest.approx(2 * conf.window / 899, rel=0.01)
+    assert found.used and found.agreement < conf.min_agreement and found.needed == pytest.approx(10 * chance)
+    shuffled = sequence.detect(names, desc[rng.permutation(900)], conf)
+    assert not shuffled.used and shuffled.agreement < 2 * chance
+    assert sequence.detect(_names(40), _walk_descriptors(40), conf).needed == conf.min_agreement
+
+
 def test_yes_without_numbered_names_is_a_clear_error():
     with pytest.raises(ValueError, match="do not number frames"):
         sequence.detect(["a.png", "b.png", "c.png"], None, SequenceConfig(mode="yes"))

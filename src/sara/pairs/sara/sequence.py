@@ -6,7 +6,13 @@ A name numbers a frame when it ends in digits before its extension (`frame_00012
 extension) form one sequence, ordered by the number. A phone's photo names number every capture
 too, so in `auto` mode the order counts only when the images' looks agree with it: most of each
 image's nearest global descriptors must be frames within `window` places of it, which a shuffled
-collection reaches by chance with probability about 2 window / N per neighbour.
+collection reaches by chance with probability about 2 window / N per neighbour. In a long capture
+"most" asks too much: a walk that passes places twice, or turns the camera left and right by turns,
+has nearest neighbours from the other pass or a few windows on (a 1,000-frame walk: 39%, 39 times
+what chance gives, and its retrieval neighbours missed 3,011 of the 5,000 window pairs). So the
+bar is the lower of `min_agreement` and AGREEMENT_LIFT times the chance share: ten times chance is
+far beyond what a shuffled collection reaches, and for fewer than about 200 frames the bar stays
+`min_agreement`.
 
 In a sequence, each frame is also a candidate pair with the `window` frames that follow it; the
 retrieval neighbours stay candidates too and close the loops. The candidates are scored and the
@@ -33,6 +39,8 @@ MIN_FRAMES = 3
 MIN_COVERED = 0.9
 #: nearest global descriptors per image that test the order in `auto` mode
 AGREEMENT_NEIGHBOURS = 4
+#: `auto`: an agreement this many times the chance share always counts (see the module docstring)
+AGREEMENT_LIFT = 10.0
 
 
 @dataclass
@@ -41,18 +49,20 @@ class Sequences:
 
     orders: one list of indices into the names per sequence, in capture order (empty: no order).
     agreement: share of the nearest global descriptors that are neighbouring frames (None: not tested).
+    needed: the share `auto` asked for (`needed_agreement`; None: not tested).
     used: whether the order feeds the candidates (mode yes, or auto and the looks agree).
     """
 
     orders: list[list[int]] = field(default_factory=list)
     agreement: float | None = None
+    needed: float | None = None
     used: bool = False
 
     def summary(self, mode: str, num_window: int) -> dict[str, Any]:
+        rounded = {key: None if value is None else round(value, 4)
+                   for key, value in (("agreement", self.agreement), ("agreement_needed", self.needed))}
         return {"mode": mode, "used": self.used, "num_sequences": len(self.orders),
-                "num_frames": sum(map(len, self.orders)),
-                "agreement": None if self.agreement is None else round(self.agreement, 4),
-                "num_window_candidates": num_window}
+                "num_frames": sum(map(len, self.orders)), **rounded, "num_window_candidates": num_window}
 
 
 def frame_orders(names: list[str]) -> list[list[int]]:
@@ -88,6 +98,20 @@ def agreement(orders: list[list[int]], desc: np.ndarray, window: int) -> float:
     return near / total if total else 0.0
 
 
+def chance_agreement(orders: list[list[int]], num_names: int, window: int) -> float:
+    """The agreement a shuffled order would have on average: per frame, the share of the other
+    images that lie within `window` places of it in its sequence."""
+    if num_names < 2:
+        return 1.0
+    counts = [min(p, window) + min(len(order) - 1 - p, window) for order in orders for p in range(len(order))]
+    return float(np.mean(counts)) / (num_names - 1) if counts else 0.0
+
+
+def needed_agreement(orders: list[list[int]], num_names: int, conf: SequenceConfig) -> float:
+    """The agreement `auto` asks for: `min_agreement`, or AGREEMENT_LIFT times chance where lower."""
+    return min(conf.min_agreement, AGREEMENT_LIFT * chance_agreement(orders, num_names, conf.window))
+
+
 def detect(names: list[str], desc: np.ndarray | None, conf: SequenceConfig) -> Sequences:
     """The sequences of a capture under `conf.mode` (see the module docstring)."""
     if conf.mode == "no":
@@ -100,8 +124,8 @@ def detect(names: list[str], desc: np.ndarray | None, conf: SequenceConfig) -> S
         return Sequences(orders, used=True)
     if not orders or desc is None:
         return Sequences(orders)
-    share = agreement(orders, desc, conf.window)
-    return Sequences(orders, share, used=share >= conf.min_agreement)
+    share, needed = agreement(orders, desc, conf.window), needed_agreement(orders, len(names), conf)
+    return Sequences(orders, share, needed, used=share >= needed)
 
 
 def window_pairs(orders: list[list[int]], window: int) -> np.ndarray:

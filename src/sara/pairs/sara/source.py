@@ -257,8 +257,9 @@ def _with_window(edges: np.ndarray, sequences: sequence.Sequences, window: int) 
     if not sequences.used:
         if sequences.orders:
             logger.info("sequence: the names number %d frames, but only %.0f%% of the images' nearest global "
-                        "descriptors are neighbouring frames: not used as an order (--sequence yes uses it)",
-                        sum(map(len, sequences.orders)), 100 * (sequences.agreement or 0.0))
+                        "descriptors are neighbouring frames (%.0f%% needed): not used as an order (--sequence yes "
+                        "uses it)", sum(map(len, sequences.orders)), 100 * (sequences.agreement or 0.0),
+                        100 * (sequences.needed or 0.0))
         return edges, 0
     known = {(int(a), int(b)) for a, b in edges}
     extra = np.array([p for p in sequence.window_pairs(sequences.orders, window).tolist() if tuple(p) not in known],
