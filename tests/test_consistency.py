@@ -144,10 +144,3 @@ def test_the_stage_record_keeps_the_first_models_check_through_a_continuation(sc
     continued = mapping._first_model_check(colmap.MappedModels({0: rec}), records.read_record(tmp_path / "out", "map"))
     assert continued == {k: first[k] for k in mapping.FIRST_MODEL_KEYS}
     assert mapping._first_model_check(colmap.MappedModels({0: rec}), None) == {}
-
-
-def test_mapping_threads_by_the_machine():
-    """map.num_threads 0: one thread up to mapping.ONE_THREAD_MAX_CORES cores, COLMAP's every core above;
-    a number set by hand is kept."""
-    assert [mapping.mapping_threads(0, cores) for cores in (1, 2, 3, 16)] == [1, 1, -1, -1]
-    assert mapping.mapping_threads(-1, 2) == -1 and mapping.mapping_threads(4, 2) == 4

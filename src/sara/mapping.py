@@ -12,7 +12,6 @@ in COLMAP's GUI, or damaged) is never overwritten on resume: DamagedOutputError 
 from __future__ import annotations
 
 import logging
-import os
 import shutil
 import time
 from collections.abc import Callable
@@ -55,7 +54,6 @@ def run(conf: MapConfig, db_path: Path, images_root: Path, out_dir: Path, *, see
         return sparse
     previous = records.read_record(out_dir, STAGE)
     records.mark_started(out_dir, STAGE, key)
-    conf = replace(conf, num_threads=mapping_threads(conf.num_threads))
     tmp = out_dir / ".sara" / PARTIAL
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
@@ -80,30 +78,12 @@ def run(conf: MapConfig, db_path: Path, images_root: Path, out_dir: Path, *, see
     swap_in(tmp, sparse)
     info = {"time_s": elapsed, "num_components": len(sizes), "component_sizes": sizes,
             "num_registered": sizes[0], "num_images": num_images, "forward_start": recs.forward_start,
-            "continued": input_model is not None and conf.mapper == "incremental", "num_threads": conf.num_threads}
+            "continued": input_model is not None and conf.mapper == "incremental"}
     info.update(_first_model_check(recs, previous if info["continued"] else None))
     records.mark_done(out_dir, STAGE, key, info, outputs={"sparse": model_digest(sparse)})
     if len(sizes) > 1:
         logger.warning("map: the scene split into %d models of %s images", len(sizes), sizes)
     return sparse
-
-
-#: `map.num_threads` 0 ("by machine") maps on one thread on machines of at most this many cores
-ONE_THREAD_MAX_CORES = 2
-
-
-def mapping_threads(setting: int, cores: int | None = None) -> int:
-    """COLMAP's mapping threads for `map.num_threads`: 0 gives one thread on a machine of at most
-    ONE_THREAD_MAX_CORES cores and every core (-1) otherwise; any other value is kept.
-
-    On a 2-core machine one thread mapped faster and did not bend the model (1,000-image world: the
-    first mapping 98 s on one thread against 155 s bent on both, then a 121 s remap; the shared
-    scenes: lab/notes/SCALE.md, thirtieth session). Machines with more cores were not measured, so
-    they keep COLMAP's threads."""
-    if setting != 0:
-        return setting
-    cores = os.cpu_count() if cores is None else cores
-    return 1 if (cores or 1) <= ONE_THREAD_MAX_CORES else -1
 
 
 #: what the record says of the first mapping's check (`_agreeing`); a continued model keeps it

@@ -179,9 +179,7 @@ class MapConfig:
         (templeSparseRing: 16 of 16 views instead of 13).""")
     abs_pose_min_inlier_ratio: float = option(0.1, reals(0, 1, low_open=True), """Registration of a new image
         (PnP): smallest inlier ratio (COLMAP's default: 0.25).""")
-    num_threads: int = option(-1, threads(), """COLMAP's mapping threads; -1: every core; 0: by the machine,
-        one thread on a machine of at most 2 cores (there faster and the models unbent), every core on
-        larger ones (not measured).""")
+    num_threads: int = option(-1, threads(), "COLMAP's mapping threads; -1: every core.")
     contradicted_remaps: int = option(2, ints(0), """Incremental mapper: when more than 0.5% of the verified
         pairs between the first model's views contradict it (their matches lie over 4 px off its epipolar
         lines: a model bent where the views pass a place twice), map again at most this many times, under
