@@ -42,7 +42,7 @@ def _walk_descriptors(n: int, seed: int = 0) -> np.ndarray:
 
 def test_auto_uses_the_order_only_when_the_looks_agree():
     names, desc = _names(40), _walk_descriptors(40)
-    conf = SequenceConfig(mode="auto")
+    conf = SequenceConfig(mode="auto", auto_min_frames=40)
     found = sequence.detect(names, desc, conf)
     assert found.used and found.agreement > 0.9
     shuffled = np.random.default_rng(1).permutation(40)
@@ -66,6 +66,16 @@ def test_a_long_walk_over_the_same_streets_counts_at_ten_times_chance():
     shuffled = sequence.detect(names, desc[rng.permutation(900)], conf)
     assert not shuffled.used and shuffled.agreement < 2 * chance
     assert sequence.detect(_names(40), _walk_descriptors(40), conf).needed == conf.min_agreement
+
+
+def test_auto_leaves_a_short_sequence_to_the_retrieval_neighbours():
+    """Under auto_min_frames frames (the default 500) auto records the order and its agreement but does
+    not use it; yes does."""
+    names, desc = _names(40), _walk_descriptors(40)
+    found = sequence.detect(names, desc, SequenceConfig())
+    assert SequenceConfig().mode == "auto" and len(found.orders) == 1 and found.agreement > 0.9
+    assert not found.used
+    assert sequence.detect(names, desc, SequenceConfig(mode="yes")).used
 
 
 def test_yes_without_numbered_names_is_a_clear_error():

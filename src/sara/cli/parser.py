@@ -149,7 +149,8 @@ class _ExportHelpFormatter(argparse.HelpFormatter):
 def _add_sequence(p: argparse.ArgumentParser) -> None:
     p.add_argument("--sequence", choices=["auto", "yes", "no"], default=None,
                    help="the images are frames in capture order, numbered by their names (video, drive): yes, "
-                        "auto (when their looks agree with the names' order) or no (default)")
+                        "auto (the default: when their looks agree with the names' order, from "
+                        "sequence.auto_min_frames frames) or no")
 
 
 def _add_run(sub: argparse._SubParsersAction) -> None:

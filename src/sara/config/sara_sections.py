@@ -63,17 +63,22 @@ class SequenceConfig:
 
     SECTION: ClassVar[str] = "sequence"
 
-    mode: str = option("no", choice("auto", "yes", "no"), """auto: the images are frames of a sequence when
+    mode: str = option("auto", choice("auto", "yes", "no"), """auto: the images are frames of a sequence when
         their names number them (frame_000123.png, IMG_0042.JPG) and their global descriptors agree (most
-        nearest neighbours are neighbouring frames); yes: whenever the names number them; no: never (the
-        default: on the shared scenes the window's candidates changed nothing or cost a little, see
-        lab/notes/CAPTURES.md).""", advanced=False)
+        nearest neighbours are neighbouring frames, see min_agreement), and the window is used from
+        auto_min_frames frames; yes: whenever the names number them, at any length; no: never.""",
+        advanced=False)
     window: int = option(5, ints(1), """In a sequence, each frame is also a candidate pair with this many
         following frames, besides its retrieval neighbours (which close the loops).""")
     min_agreement: float = option(0.5, reals(0, 1), """auto: the share of the images' nearest global
         descriptors that must be neighbouring frames (within `window`) for the names' order to count; in long
         sequences ten times the share a shuffled order reaches, where that is lower (from about 200 frames:
         a walk that passes places twice has nearest neighbours on the other pass).""")
+
+    auto_min_frames: int = option(500, ints(1), """auto: fewest frames of a sequence (all its sequences
+        together) for the window to be used. On a 1,000-frame walk the window joined 996 views in one model
+        where retrieval alone left 980 in four; on the shared scenes of 11-119 frames it gained nothing and
+        cost up to 0.0016 AUC@1 (lab/notes/CAPTURES.md, section 14).""")
 
     def __post_init__(self) -> None:
         validate(self)

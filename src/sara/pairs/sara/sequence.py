@@ -16,7 +16,10 @@ far beyond what a shuffled collection reaches, and for fewer than about 200 fram
 
 In a sequence, each frame is also a candidate pair with the `window` frames that follow it; the
 retrieval neighbours stay candidates too and close the loops. The candidates are scored and the
-pairs chosen as for any capture.
+pairs chosen as for any capture. `auto` (the default) uses the window only from `auto_min_frames`
+frames: in a long walk the window's frames, which look different from each other (the same place
+from another side, the next stretch), linked the views that retrieval alone left out of the model;
+in the shared scenes' short sequences they gained nothing (see SequenceConfig).
 """
 
 from __future__ import annotations
@@ -125,7 +128,8 @@ def detect(names: list[str], desc: np.ndarray | None, conf: SequenceConfig) -> S
     if not orders or desc is None:
         return Sequences(orders)
     share, needed = agreement(orders, desc, conf.window), needed_agreement(orders, len(names), conf)
-    return Sequences(orders, share, needed, used=share >= needed)
+    long_enough = sum(map(len, orders)) >= conf.auto_min_frames
+    return Sequences(orders, share, needed, used=long_enough and share >= needed)
 
 
 def window_pairs(orders: list[list[int]], window: int) -> np.ndarray:

@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 
 from ... import retrieval, scoring, selection
+from ...config import SequenceConfig
 from ...descriptors import top_k_cosine
 from ...io.pairs import Pair
 from ...io.scores import PairScores, concat_scores, take_scores, write_scores_csv
@@ -41,7 +42,7 @@ def select(ctx: PairContext, cached: PairScores | None = None) -> PairResult:
     tic = time.perf_counter()
     names, edges, desc = _candidates(ctx)
     sequences = sequence.detect(names, desc, conf.sequence)
-    edges, num_window = _with_window(edges, sequences, conf.sequence.window)
+    edges, num_window = _with_window(edges, sequences, conf.sequence)
     timings["retrieval"] = time.perf_counter() - tic
 
     tic = time.perf_counter()
@@ -251,19 +252,23 @@ def _candidates(ctx: PairContext) -> tuple[list[str], np.ndarray, np.ndarray | N
     return names, retrieval.knn_pairs(desc, conf.retrieval.num_neighbors).astype(np.int64), desc
 
 
-def _with_window(edges: np.ndarray, sequences: sequence.Sequences, window: int) -> tuple[np.ndarray, int]:
-    """The candidates and, in a sequence, each frame's `window` following frames (appended, kNN
+def _with_window(edges: np.ndarray, sequences: sequence.Sequences, conf: SequenceConfig) -> tuple[np.ndarray, int]:
+    """The candidates and, in a sequence, each frame's `conf.window` following frames (appended, kNN
     pairs first); returns them and how many the window added."""
     if not sequences.used:
-        if sequences.orders:
+        frames = sum(map(len, sequences.orders))
+        if sequences.orders and conf.mode == "auto" and frames < conf.auto_min_frames:
+            logger.info("sequence: the names number %d frames, fewer than sequence.auto_min_frames (%d): the "
+                        "retrieval neighbours alone (--sequence yes adds the window)", frames, conf.auto_min_frames)
+        elif sequences.orders:
             logger.info("sequence: the names number %d frames, but only %.0f%% of the images' nearest global "
                         "descriptors are neighbouring frames (%.0f%% needed): not used as an order (--sequence yes "
                         "uses it)", sum(map(len, sequences.orders)), 100 * (sequences.agreement or 0.0),
                         100 * (sequences.needed or 0.0))
         return edges, 0
     known = {(int(a), int(b)) for a, b in edges}
-    extra = np.array([p for p in sequence.window_pairs(sequences.orders, window).tolist() if tuple(p) not in known],
-                     dtype=np.int64).reshape(-1, 2)
+    window = sequence.window_pairs(sequences.orders, conf.window).tolist()
+    extra = np.array([p for p in window if tuple(p) not in known], dtype=np.int64).reshape(-1, 2)
     if len(extra):
         logger.info("sequence: %d frames in %d sequence(s); %d candidate pairs of neighbouring frames added to "
                     "the retrieval neighbours", sum(map(len, sequences.orders)), len(sequences.orders), len(extra))
