@@ -9,7 +9,7 @@ image's nearest global descriptors must be frames within `window` places of it, 
 collection reaches by chance with probability about 2 window / N per neighbour. In a long capture
 "most" asks too much: a walk that passes places twice, or turns the camera left and right by turns,
 has nearest neighbours from the other pass or a few windows on (a 1,000-frame walk: 39%, 39 times
-what chance gives, and its retrieval neighbours missed 3,011 of the 5,000 window pairs). So the
+what chance gives, and its retrieval neighbours missed 3,011 of the 4,985 window pairs). So the
 bar is the lower of `min_agreement` and AGREEMENT_LIFT times the chance share: ten times chance is
 far beyond what a shuffled collection reaches, and for fewer than about 200 frames the bar stays
 `min_agreement`.
@@ -53,7 +53,7 @@ class Sequences:
     orders: one list of indices into the names per sequence, in capture order (empty: no order).
     agreement: share of the nearest global descriptors that are neighbouring frames (None: not tested).
     needed: the share `auto` asked for (`needed_agreement`; None: not tested).
-    used: whether the order feeds the candidates (mode yes, or auto and the looks agree).
+    used: whether the order feeds the candidates (mode yes, or auto, the looks agree and it is long enough).
     """
 
     orders: list[list[int]] = field(default_factory=list)
