@@ -208,7 +208,12 @@ def test_sara_run_on_a_video_resumes_and_refuses_other_settings(video_scene, tmp
     metrics = json.loads((out / "metrics.json").read_text())
     # scored on the 5 frames picked, not on the 6 frames the ground truth poses
     assert metrics["num_images_gt"] == 5 and metrics["num_registered"] == 5
-    assert json.loads((out / "run.json").read_text())["images_root"] == str((out / "images").resolve())
+    record = json.loads((out / "run.json").read_text())
+    assert record["images_root"] == str((out / "images").resolve())
+    # the frames are a sequence by default, too short for the window (sequence.auto_min_frames)
+    found = record["stages"]["pairs"]["sequence"]
+    assert found["mode"] == "auto" and found["num_frames"] == 5
+    assert not found["used"] and found["num_window_candidates"] == 0
 
     def no_decoding(*args, **kwargs):
         raise AssertionError("decoded again")
