@@ -63,6 +63,7 @@ def test_a_long_walk_over_the_same_streets_counts_at_ten_times_chance():
     chance = sequence.chance_agreement(found.orders, len(names), conf.window)
     assert chance == pytest.approx(2 * conf.window / 899, rel=0.01)
     assert found.used and found.agreement < conf.min_agreement and found.needed == pytest.approx(10 * chance)
+    assert found.summary("auto", 0)["agreement_needed"] == round(found.needed, 4)  # what run.json records
     shuffled = sequence.detect(names, desc[rng.permutation(900)], conf)
     assert not shuffled.used and shuffled.agreement < 2 * chance
     assert sequence.detect(_names(40), _walk_descriptors(40), conf).needed == conf.min_agreement
