@@ -61,11 +61,15 @@ class Sequences:
     needed: float | None = None
     used: bool = False
 
+    @property
+    def num_frames(self) -> int:
+        return sum(map(len, self.orders))
+
     def summary(self, mode: str, num_window: int) -> dict[str, Any]:
         rounded = {key: None if value is None else round(value, 4)
                    for key, value in (("agreement", self.agreement), ("agreement_needed", self.needed))}
         return {"mode": mode, "used": self.used, "num_sequences": len(self.orders),
-                "num_frames": sum(map(len, self.orders)), **rounded, "num_window_candidates": num_window}
+                "num_frames": self.num_frames, **rounded, "num_window_candidates": num_window}
 
 
 def frame_orders(names: list[str]) -> list[list[int]]:
@@ -127,9 +131,9 @@ def detect(names: list[str], desc: np.ndarray | None, conf: SequenceConfig) -> S
         return Sequences(orders, used=True)
     if not orders or desc is None:
         return Sequences(orders)
-    share, needed = agreement(orders, desc, conf.window), needed_agreement(orders, len(names), conf)
-    long_enough = sum(map(len, orders)) >= conf.auto_min_frames
-    return Sequences(orders, share, needed, used=long_enough and share >= needed)
+    found = Sequences(orders, agreement(orders, desc, conf.window), needed_agreement(orders, len(names), conf))
+    found.used = found.num_frames >= conf.auto_min_frames and found.agreement >= found.needed
+    return found
 
 
 def window_pairs(orders: list[list[int]], window: int) -> np.ndarray:

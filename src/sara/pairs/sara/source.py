@@ -256,14 +256,14 @@ def _with_window(edges: np.ndarray, sequences: sequence.Sequences, conf: Sequenc
     """The candidates and, in a sequence, each frame's `conf.window` following frames (appended, kNN
     pairs first); returns them and how many the window added."""
     if not sequences.used:
-        frames = sum(map(len, sequences.orders))
+        frames = sequences.num_frames
         if sequences.orders and conf.mode == "auto" and frames < conf.auto_min_frames:
             logger.info("sequence: the names number %d frames, fewer than sequence.auto_min_frames (%d): the "
                         "retrieval neighbours alone (--sequence yes adds the window)", frames, conf.auto_min_frames)
         elif sequences.orders:
             logger.info("sequence: the names number %d frames, but only %.0f%% of the images' nearest global "
                         "descriptors are neighbouring frames (%.0f%% needed): not used as an order (--sequence yes "
-                        "uses it)", sum(map(len, sequences.orders)), 100 * (sequences.agreement or 0.0),
+                        "uses it)", frames, 100 * (sequences.agreement or 0.0),
                         100 * (sequences.needed or 0.0))
         return edges, 0
     known = {(int(a), int(b)) for a, b in edges}
@@ -271,7 +271,7 @@ def _with_window(edges: np.ndarray, sequences: sequence.Sequences, conf: Sequenc
     extra = np.array([p for p in window if tuple(p) not in known], dtype=np.int64).reshape(-1, 2)
     if len(extra):
         logger.info("sequence: %d frames in %d sequence(s); %d candidate pairs of neighbouring frames added to "
-                    "the retrieval neighbours", sum(map(len, sequences.orders)), len(sequences.orders), len(extra))
+                    "the retrieval neighbours", sequences.num_frames, len(sequences.orders), len(extra))
     return np.concatenate([edges.reshape(-1, 2), extra]), len(extra)
 
 
