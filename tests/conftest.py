@@ -24,7 +24,7 @@ def five_view_scene(tmp_path_factory):
     test that extracts several times and needs a scene, not this one."""
     from sara.synthetic import make_scene
 
-    return make_scene(tmp_path_factory.mktemp("small"), num_images=5)
+    return make_scene(tmp_path_factory.mktemp("small"), num_images=5, width=800, height=600)  # 800x600: 0.6x the time
 
 
 @pytest.fixture(scope="session")

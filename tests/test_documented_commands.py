@@ -450,7 +450,7 @@ def small_scene(tmp_path_factory) -> Path:
     from sara.synthetic import make_scene
 
     folder = tmp_path_factory.mktemp("small_scene")
-    make_scene(folder, num_images=6)
+    make_scene(folder, num_images=6, width=800, height=600)  # 800x600: 0.6x the extraction time
     return folder
 
 

@@ -89,7 +89,7 @@ def test_two_unrelated_scenes_map_apart(tmp_path: Path, five_view_scene):
     from sara.synthetic import make_scene
 
     # two scenes of 5 views (each maps whole on its own): 10 images to extract, not 16
-    other, _ = make_scene(tmp_path / "other", num_images=5, seed=7)
+    other, _ = make_scene(tmp_path / "other", num_images=5, seed=7, width=800, height=600)  # as five_view_scene
     root = tmp_path / "both"
     root.mkdir()
     for p in _scene_images(five_view_scene):

@@ -44,7 +44,7 @@ def video_scene(tmp_path_factory):
     from sara.synthetic import make_scene
 
     root = tmp_path_factory.mktemp("video_scene")
-    images, gt = make_scene(root / "scene", num_images=6)
+    images, gt = make_scene(root / "scene", num_images=6, width=800, height=600)  # 0.6x the extraction time
     names = sorted(p.name for p in images.iterdir())
     clip = write_video(root / "clip.avi", [cv2.imread(str(images / name)) for name in names])
     rename = {name: frame_name("clip", k, len(names)) for k, name in enumerate(names)}
