@@ -47,7 +47,7 @@ def test_auto_uses_the_order_only_when_the_looks_agree():
     assert found.used and found.agreement > 0.9
     shuffled = np.random.default_rng(1).permutation(40)
     unrelated = sequence.detect(names, desc[shuffled], conf)  # numbered like a phone, shot anywhere
-    assert not unrelated.used and unrelated.agreement < conf.min_agreement
+    assert not unrelated.used and not unrelated.too_short and unrelated.agreement < conf.min_agreement
     assert sequence.detect(names, desc[shuffled], SequenceConfig(mode="yes")).used
     assert not sequence.detect(names, desc, SequenceConfig(mode="no")).used
 
@@ -75,7 +75,7 @@ def test_auto_leaves_a_short_sequence_to_the_retrieval_neighbours():
     names, desc = _names(40), _walk_descriptors(40)
     found = sequence.detect(names, desc, SequenceConfig())
     assert SequenceConfig().mode == "auto" and len(found.orders) == 1 and found.agreement > 0.9
-    assert not found.used
+    assert not found.used and found.too_short
     assert sequence.detect(names, desc, SequenceConfig(mode="yes")).used
 
 

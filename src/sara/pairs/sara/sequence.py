@@ -54,12 +54,14 @@ class Sequences:
     agreement: share of the nearest global descriptors that are neighbouring frames (None: not tested).
     needed: the share `auto` asked for (`needed_agreement`; None: not tested).
     used: whether the order feeds the candidates (mode yes, or auto, the looks agree and it is long enough).
+    too_short: auto found fewer frames than `auto_min_frames` (whatever the agreement).
     """
 
     orders: list[list[int]] = field(default_factory=list)
     agreement: float | None = None
     needed: float | None = None
     used: bool = False
+    too_short: bool = False
 
     @property
     def num_frames(self) -> int:
@@ -132,7 +134,8 @@ def detect(names: list[str], desc: np.ndarray | None, conf: SequenceConfig) -> S
     if not orders or desc is None:
         return Sequences(orders)
     found = Sequences(orders, agreement(orders, desc, conf.window), needed_agreement(orders, len(names), conf))
-    found.used = found.num_frames >= conf.auto_min_frames and found.agreement >= found.needed
+    found.too_short = found.num_frames < conf.auto_min_frames
+    found.used = not found.too_short and found.agreement >= found.needed
     return found
 
 

@@ -257,13 +257,13 @@ def _with_window(edges: np.ndarray, sequences: sequence.Sequences, conf: Sequenc
     pairs first); returns them and how many the window added."""
     if not sequences.used:
         frames = sequences.num_frames
-        if sequences.orders and conf.mode == "auto" and frames < conf.auto_min_frames:
+        if sequences.too_short:
             logger.info("sequence: the names number %d frames, fewer than sequence.auto_min_frames (%d): the "
                         "retrieval neighbours alone (--sequence yes adds the window)", frames, conf.auto_min_frames)
-        elif sequences.orders:
+        elif sequences.agreement is not None:
             logger.info("sequence: the names number %d frames, but only %.0f%% of the images' nearest global "
                         "descriptors are neighbouring frames (%.0f%% needed): not used as an order (--sequence yes "
-                        "uses it)", frames, 100 * (sequences.agreement or 0.0),
+                        "uses it)", frames, 100 * sequences.agreement,
                         100 * (sequences.needed or 0.0))
         return edges, 0
     known = {(int(a), int(b)) for a, b in edges}
