@@ -189,6 +189,9 @@ def after_mapping(run: RoundsRun) -> dict[str, Any] | None:
     while info["rounds"] < run.conf.rounds.repair_rounds and _one_round(run, info):
         info = ledger(out_dir, run.selection_key)
     info = ledger(out_dir, run.selection_key)
+    if _last_round_due(run, info):
+        _one_round(run, info, last=True)
+        info = ledger(out_dir, run.selection_key)
     finished = _finish(run, refined=info.get("refined_rounds", 0) > 0)
     if finished is not None:
         info.update(extension=finished, time_s=info["time_s"] + finished["time_s"],
@@ -205,8 +208,16 @@ def time_budget(conf: PipelineConfig, info: dict[str, Any]) -> eta.TimeBudget:
                           rate_pairs_per_s=info.get("first_match_rate_pairs_per_s", 0.0))
 
 
-def _one_round(run: RoundsRun, info: dict[str, Any]) -> bool:
-    """One round after mapping; False when there is none to run (the ledger says why in `stopped`)."""
+def _last_round_due(run: RoundsRun, info: dict[str, Any]) -> bool:
+    """Whether the repairs used up `rounds.repair_rounds` with no round refining the model
+    (`rounds.pose_guided_last`): then one more round, in which the source may only refine."""
+    return (run.conf.rounds.pose_guided_last and info["rounds"] >= run.conf.rounds.repair_rounds
+            and "stopped" not in info and not info.get("refined_rounds", 0))
+
+
+def _one_round(run: RoundsRun, info: dict[str, Any], *, last: bool = False) -> bool:
+    """One round after mapping; False when there is none to run (the ledger says why in `stopped`).
+    `last`: the round after the repairs' (`_last_round_due`), for pairs that refine the model."""
     out_dir = run.out_dir
     budget = time_budget(run.conf, info)
     limit = budget.pairs_that_fit()
@@ -218,11 +229,11 @@ def _one_round(run: RoundsRun, info: dict[str, Any]) -> bool:
         return _stop(run, "time budget spent", total_s)
     tic = time.perf_counter()
     pairs = read_pairs(out_dir / PAIRS_NAME, known_names=run.ctx.names)
-    run.ctx.max_round_pairs = limit
+    run.ctx.max_round_pairs, run.ctx.last_round = limit, last
     try:
         added = run.rounds.after_mapping(run.ctx, pairs, out_dir / "sparse" / "0")
     finally:
-        run.ctx.max_round_pairs = None
+        run.ctx.max_round_pairs, run.ctx.last_round = None, False
     if added is None or not added.pairs:
         return _stop(run, "nothing more to add", total_s)
     if added.role in info.get("unproductive_roles", []):

@@ -73,10 +73,13 @@ def after_mapping(ctx: PairContext, pairs: list[Pair], model_dir: Path) -> Round
     2. then, while views are still out (the repair stalled, or found no candidate into the model),
        once: the best unmatched candidates of all views by weight, up to the cap (`repair.fill_pairs`);
     3. otherwise, once: the pose-guided round (`pose_guided.py`), the unmatched pairs of registered
-       views that the model predicts to add the most observations.
+       views that the model predicts to add the most observations; also in the pipeline's last round
+       (`ctx.last_round`, once the repairs used up theirs), whatever views are still out.
 
     Returns the pairs and their role (`repair`, `fill` or `pose-guided`).
     """
+    if ctx.last_round:  # the repairs had their rounds: the pose-guided pairs only, refined in place
+        return Round(pose_guided_round(ctx, pairs, model_dir), "pose-guided")
     main = colmap.registered_images(model_dir)
     left_out = left_out_views(ctx.names, pairs, main)
     key = _selection_key(ctx) if left_out else ""
