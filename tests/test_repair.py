@@ -197,8 +197,8 @@ def test_views_a_repair_left_out_get_the_fill_round_once_then_the_pose_guided_on
                                          + "".join(f"{a},{b},50,40,0.1,5,{w},true,,unselected\n" for a, b, w in others))
     # a pair cap of 6 pairs for 5 views leaves room for 2 beyond the 4 matched
     conf = make_config(overrides={"budget.max_pairs_per_image": 1.2, "budget.max_pairs_fraction": 1.0})
-    ctx = SimpleNamespace(names=["a", "b", "c", "d", "e"], out_dir=tmp_path, conf=conf, max_round_pairs=None, last_round=False,
-                          db_path=tmp_path / "database.db")
+    ctx = SimpleNamespace(names=["a", "b", "c", "d", "e"], out_dir=tmp_path, conf=conf, max_round_pairs=None,
+                          last_round=False, db_path=tmp_path / "database.db")
     monkeypatch.setattr(sara_source.colmap, "verified_inliers", lambda db, min_num_inliers: {})
     model = tmp_path / "sparse" / "0"
 
@@ -267,8 +267,8 @@ def test_after_the_fill_one_more_repair_then_the_pose_guided_round(tmp_path: Pat
     # a cap of 8 pairs: the tree, a first repair of a-d and a-e, a fill of the best two (b-d, c-e); b-e is left
     conf = make_config(overrides={"budget.max_pairs_per_image": 1.6, "budget.max_pairs_fraction": 1.0,
                                   "rounds.repair_pairs_per_view": 1, "rounds.repair_descriptor_ratio": 1.0})
-    ctx = SimpleNamespace(names=["a", "b", "c", "d", "e"], out_dir=tmp_path, conf=conf, max_round_pairs=None, last_round=False,
-                          db_path=tmp_path / "database.db")
+    ctx = SimpleNamespace(names=["a", "b", "c", "d", "e"], out_dir=tmp_path, conf=conf, max_round_pairs=None,
+                          last_round=False, db_path=tmp_path / "database.db")
     model = tmp_path / "sparse" / "0"
 
     matched = list(tree)

@@ -210,8 +210,9 @@ def time_budget(conf: PipelineConfig, info: dict[str, Any]) -> eta.TimeBudget:
 
 def _last_round_due(run: RoundsRun, info: dict[str, Any]) -> bool:
     """Whether the repairs used up `rounds.repair_rounds` with no round refining the model
-    (`rounds.pose_guided_last`): then one more round, in which the source may only refine."""
-    return (run.conf.rounds.pose_guided_last and info["rounds"] >= run.conf.rounds.repair_rounds
+    (`rounds.pose_guided_last`): then one more round (once: it makes the count one more), in which
+    the source may only refine."""
+    return (run.conf.rounds.pose_guided_last and info["rounds"] == run.conf.rounds.repair_rounds
             and "stopped" not in info and not info.get("refined_rounds", 0))
 
 
