@@ -124,7 +124,8 @@ def _default(key):
 
 
 #: options added after the old layout, which its files never hold (their defaults apply)
-NEWER_THAN_THE_OLD_LAYOUT = ("max_time_fraction", "repair_descriptor_ratio", "fill_before_map_images")
+NEWER_THAN_THE_OLD_LAYOUT = ("max_time_fraction", "repair_descriptor_ratio", "fill_before_map_images",
+                             "pose_guided_last")
 
 
 def test_a_run_json_of_the_old_layout_still_loads():
