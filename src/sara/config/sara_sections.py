@@ -262,11 +262,11 @@ class RoundsConfig:
     pose_guided_last: bool = option(True, flag(), """When the repairs used up repair_rounds with no round
         refining the model (large captures: each repair round joins more left-out views, so the pose-guided
         round never came), one more round for the pose-guided pairs, refined into the model with its poses
-        held (no mapping again). Synthetic walks, one run each on a loaded machine (lab/notes/SCALE.md): 1,000
+        held (no mapping again). Synthetic walks, one run each (lab/notes/SCALE.md): 1,000
         images AUC@1 / @5 0.927 / 0.979 against 0.911 / 0.976 (identical runs: 0.001 apart), 3,000 images
-        0.912 / 0.973 against 0.903 / 0.972, above retrieval top-k's 0.924 / 0.970 and 0.909 / 0.965; the CPU
-        time after extraction 1.55x (measured beside other work, which took the stages before the rounds to
-        1.05-1.7x their CPU time). No shared scene reaches the third round.""")
+        0.912 / 0.973 against 0.903 / 0.972, above retrieval top-k's 0.924 / 0.970 and 0.909 / 0.965. Time
+        after extraction at 1,000 images, idle machine: 653 s against 344-363 s (the round itself 210 s;
+        retrieval top-k 605 s). No shared scene reaches the third round.""")
     extend_tracks: bool = option(True, flag(), """When the pose-guided round refines the model (or else, on the
         final model), add to its tracks the keypoints that observe its 3D points without a match saying so,
         then bundle-adjust once more: each view against the points it should see, a keypoint within
