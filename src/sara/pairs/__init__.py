@@ -37,8 +37,8 @@ class PairContext:
     #: most pairs the round after mapping that is being asked for may add, from the rounds' time
     #: budget (set by the pipeline for that call; None: no limit beyond the source's own)
     max_round_pairs: int | None = None
-    #: the round asked for is the one after the repairs used up `rounds.repair_rounds`: a source may
-    #: only refine its model there, not ask to map again (set by the pipeline for that call)
+    #: the round asked for is the one after the repairs used up `rounds.repair_rounds`: a source
+    #: should give pairs its `refine` takes in (set by the pipeline for that call)
     last_round: bool = False
 
 
