@@ -376,7 +376,7 @@ def test_the_scale_test_is_on_only_for_features_whose_scores_are_scales():
 
 def test_the_adjustment_after_a_track_extension_is_capped(model: Path, tmp_path: Path, monkeypatch):
     """The model was adjusted before its tracks grew: the adjustment after the extension stops after
-    `EXTENDED_BA_MAX_ITERATIONS` (pycolmap's own default is 100)."""
+    `REFINE_BA_MAX_ITERATIONS` (pycolmap's own default is 100)."""
     from sara.colmap import refine
 
     seen = []
@@ -385,5 +385,23 @@ def test_the_adjustment_after_a_track_extension_is_capped(model: Path, tmp_path:
         None if options is None else options.ceres.solver_options.max_num_iterations))
     counts = refine.extend_and_adjust(model / "sparse" / "0", tmp_path / "out", tmp_path / "features.h5")
     assert counts["observations_added"] == 5.0
-    assert seen == [refine.EXTENDED_BA_MAX_ITERATIONS] and refine.EXTENDED_BA_MAX_ITERATIONS < 100
+    assert seen == [refine.REFINE_BA_MAX_ITERATIONS] and refine.REFINE_BA_MAX_ITERATIONS < 100
     assert pycolmap.BundleAdjustmentOptions().ceres.solver_options.max_num_iterations == 100
+
+
+def test_the_adjustment_after_re_triangulation_is_capped_too(model: Path, tmp_path: Path, monkeypatch):
+    """Both adjustments of a refinement (after re-triangulating, after extending the tracks) stop after
+    `REFINE_BA_MAX_ITERATIONS`; the model written is the triangulated one."""
+    from sara.colmap import refine
+    from sara.colmap.tracks import TrackExtension
+
+    seen = []
+    monkeypatch.setattr(refine, "extend_tracks", lambda rec, features, ext: 7)
+    monkeypatch.setattr(refine, "bundle_adjust", lambda rec, options=None: seen.append(
+        None if options is None else options.ceres.solver_options.max_num_iterations))
+    counts = refine.triangulate_and_adjust(model / "sparse" / "0", model / "database.db", model / "images",
+                                           tmp_path / "out", features_path=tmp_path / "features.h5",
+                                           extension=TrackExtension())
+    assert seen == [refine.REFINE_BA_MAX_ITERATIONS] * 2
+    assert counts["observations_added"] == 7.0 and counts["num_points3d"] > 0
+    assert (tmp_path / "out" / "images.bin").exists()
