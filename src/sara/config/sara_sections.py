@@ -265,8 +265,8 @@ class RoundsConfig:
         held (no mapping again). Synthetic walks, one run each (lab/notes/SCALE.md): 1,000
         images AUC@1 / @5 0.927 / 0.979 against 0.911 / 0.976 (identical runs: 0.001 apart), 3,000 images
         0.912 / 0.973 against 0.903 / 0.972; retrieval top-k 0.924 / 0.970 and 0.909 / 0.965. Time
-        after extraction at 1,000 images, idle machine: 653 s against 344-363 s (the round itself 210 s;
-        retrieval top-k 605 s). No shared scene reaches the third round.""")
+        after extraction at 1,000 images, idle machine: 578 s against 344-363 s (the round itself 169 s;
+        retrieval top-k 767 s, run right after). No shared scene reaches the third round.""")
     extend_tracks: bool = option(True, flag(), """When the pose-guided round refines the model (or else, on the
         final model), add to its tracks the keypoints that observe its 3D points without a match saying so,
         then bundle-adjust once more: each view against the points it should see, a keypoint within
