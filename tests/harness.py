@@ -223,3 +223,13 @@ def present_for(path: Path, seconds: float) -> Callable[[int], bool]:
         first_seen[:] = first_seen or [time.monotonic()]
         return time.monotonic() - first_seen[0] >= seconds
     return check
+
+
+def best_matched_pair(out: Path) -> tuple[str, str, int]:
+    """(name0, name1, inlier matches) of the verified pair with the most inlier matches in a run's
+    database: two views close enough that COLMAP's mapper has the matches to start from them."""
+    from sara import colmap
+
+    names = {image_id: name for name, image_id in colmap.image_ids(out / "database.db").items()}
+    i, j, inliers = max(colmap.verified_image_pairs(out / "database.db"), key=lambda p: p[2])
+    return names[i], names[j], inliers

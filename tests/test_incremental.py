@@ -23,10 +23,10 @@ NUM_FIRST = 6  # images of the first run; the scene has two more
 
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory) -> Path:
-    """A small synthetic scene of 8 views (at the fixtures' image size: smaller ones register badly)."""
+    """A small synthetic scene of 8 views, at the fixtures' image size."""
     from sara.synthetic import make_scene
 
-    images, _ = make_scene(tmp_path_factory.mktemp("inc_scene"), num_images=NUM_FIRST + 2)
+    images, _ = make_scene(tmp_path_factory.mktemp("inc_scene"), num_images=NUM_FIRST + 2, width=800, height=600)
     return images
 
 

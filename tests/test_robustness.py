@@ -59,7 +59,7 @@ def test_check_image_reasons(messy_folder: Path):
     assert "not a readable image" in check_image(messy_folder / "not_an_image.png")[1]
     assert "too small" in check_image(messy_folder / "tiny.png")[1]
     size, reason, orientation = check_image(messy_folder / "view04_rotated.jpg")
-    assert reason is None and size == (1024, 768) and orientation == 6
+    assert reason is None and size == (800, 600) and orientation == 6
 
 
 def test_scan_skips_bad_files(messy_folder: Path):

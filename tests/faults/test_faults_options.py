@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from harness import assert_error, assert_kept, assert_ok, snapshot, truncate
+from harness import assert_error, assert_kept, assert_ok, best_matched_pair, snapshot, truncate
 
 BAD_VALUES = {
     "--seed -1": (["--seed", "-1"], "--seed", "from 0 to 2147483647"),
@@ -118,13 +118,15 @@ def test_one_image_is_refused(images, tmp_path, run_cli):
     assert not (tmp_path / "out").exists()
 
 
-def test_two_close_views_say_why_no_model(images, tmp_path, run_cli):
-    """Two views with well over 100 inlier matches: the message says what COLMAP's mapper lacks
-    (triangulation angle), not "too few verified matches"."""
+def test_two_close_views_say_why_no_model(images, finished_run_template, tmp_path, run_cli):
+    """Two views with over 100 inlier matches (the pair of the scene with the most): the message says
+    what COLMAP's mapper lacks (triangulation angle), not "too few verified matches"."""
+    *two, inliers = best_matched_pair(finished_run_template)
+    assert inliers > 100
     folder = tmp_path / "two"
     folder.mkdir()
-    for path in sorted(images.iterdir())[:2]:
-        shutil.copyfile(path, folder / path.name)
+    for name in two:
+        shutil.copyfile(images / name, folder / name)
     result = run_cli("run", folder, tmp_path / "out", "-q")
     line = assert_error(result, 5, "no model could be built", "inlier matches", "16 degrees")
     assert "too few verified matches" not in line
