@@ -12,8 +12,8 @@ os.environ.setdefault("OMP_NUM_THREADS", "2")
 
 @pytest.fixture(scope="session")
 def synthetic_scene(tmp_path_factory):
-    """A small rendered scene with known poses: (images folder, gt folder). 800x600, as every scene
-    the tests extract: SIFT takes 0.6x the time of the renderer's default 1024x768."""
+    """A small rendered scene with known poses: (images folder, gt folder), 800x600 (the renderer's
+    default; 1024x768 took SIFT 1.6x the time)."""
     from sara.synthetic import make_scene
 
     return make_scene(tmp_path_factory.mktemp("synthetic"), num_images=10, width=800, height=600)

@@ -41,7 +41,7 @@ def messy_folder(tmp_path_factory, synthetic_scene) -> Path:
     for i in range(5, 10):
         rgb[i].save(root / f"view{i:02d}.png")
     shutil.copyfile(root / "view05.png", root / "view05_duplicate.png")
-    Image.new("RGB", (1024, 768), (120, 130, 140)).save(root / "flat.png")
+    Image.new("RGB", rgb[0].size, (120, 130, 140)).save(root / "flat.png")  # the views' size, no feature
     (root / "zero.jpg").write_bytes(b"")
     blob = (root / "view04_rotated.jpg").read_bytes()
     (root / "truncated.jpg").write_bytes(blob[: len(blob) // 3])
@@ -59,7 +59,7 @@ def test_check_image_reasons(messy_folder: Path):
     assert "not a readable image" in check_image(messy_folder / "not_an_image.png")[1]
     assert "too small" in check_image(messy_folder / "tiny.png")[1]
     size, reason, orientation = check_image(messy_folder / "view04_rotated.jpg")
-    assert reason is None and size == (800, 600) and orientation == 6
+    assert reason is None and size == Image.open(messy_folder / "view05.png").size and orientation == 6
 
 
 def test_scan_skips_bad_files(messy_folder: Path):
