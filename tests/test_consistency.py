@@ -127,6 +127,25 @@ def test_when_every_seed_is_contradicted_the_largest_model_is_kept(scene, tmp_pa
     assert recs.seed == 1 and recs.largest == 6  # the first of the two 6-view models, as contradicted as the other
 
 
+def test_a_mapping_contradicted_by_the_same_pairs_again_ends_the_remaps(scene, tmp_path, monkeypatch, caplog):
+    """The pairs that contradict the first model contradict the next seed's model too: they are wrong
+    whatever the model, so no third mapping follows (dtu-scan24 under exhaustive matching: the same 12
+    of 683 pairs under three seeds)."""
+    rec, db_path = scene
+    seeds = []
+
+    def fake_incremental(conf, db, images, tmp, seed, progress, num_images, input_model, **kwargs):
+        seeds.append(seed)
+        return colmap.MappedModels({0: turned(rec, 3, 3.0)})
+
+    monkeypatch.setattr(mapping, "_incremental", fake_incremental)
+    with caplog.at_level("WARNING", logger="sara.mapping"):
+        recs, _, _ = mapping._map(MapConfig(), db_path, tmp_path, tmp_path, seed=0, progress=False)
+    assert MapConfig().contradicted_remaps == 2 and seeds == [0, 1] and recs.remaps == 1
+    assert recs.seed == 0 and len(recs.agreement_check.contradicted) == 5  # the first of equals is kept
+    assert "the same 5 pairs contradict the model under seed 1" in caplog.text
+
+
 def test_the_stage_record_keeps_the_first_models_check_through_a_continuation(scene, tmp_path, monkeypatch):
     """`run.json` says which seed built the first model and how many pairs contradicted it; a model
     continued from it by a later round keeps that in its record."""

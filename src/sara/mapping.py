@@ -171,7 +171,9 @@ def _agreeing(conf: MapConfig, db_path: Path, images_root: Path, tmp: Path, seed
     """Map again, at most `map.contradicted_remaps` times, while the first mapping's largest model is
     contradicted by its own verified pairs (`_contradicted`): each time under the next seed, on
     `REMAP_THREADS` threads, the first model started from the view in most of the contradicting
-    pairs; keeps the best.
+    pairs; keeps the best. When a new mapping is contradicted by exactly the pairs that contradicted
+    the one before it, those pairs are wrong whatever the model (matches on a repeated texture, a
+    view the camera model does not fit), and no more mappings follow.
 
     The incremental mapper can bend a model where the views pass a place twice: the pairs that
     would close the loop never join a track, so nothing in the mapper sees them (1,000-image
@@ -181,6 +183,7 @@ def _agreeing(conf: MapConfig, db_path: Path, images_root: Path, tmp: Path, seed
     as well, so what is shown is the single thread's effect (`REMAP_THREADS`)."""
     best, best_check = first, first.agreement(db_path, min_num_inliers)
     best.seed, remaps, check = seed, 0, best_check
+    earlier = check  # the check of the model mapped last before the next one
     while _contradicted(best_check) and remaps < conf.contradicted_remaps:
         remaps += 1
         start = check.most_contradicted_view()  # the last model's: a model no pair contradicts ends the loop
@@ -199,6 +202,12 @@ def _agreeing(conf: MapConfig, db_path: Path, images_root: Path, tmp: Path, seed
                        seed + remaps, again.largest, len(check.contradicted), check.checked)
         if _better(again, check, best, best_check):
             best, best_check = again, check
+        if set(check.contradicted) == set(earlier.contradicted):
+            logger.warning("map: the same %d pairs contradict the model under seed %d: the fault is in those "
+                           "pairs, not in how the mapper built the model; no more mappings", len(check.contradicted),
+                           seed + remaps)
+            break
+        earlier = check
     best.agreement_check, best.remaps = best_check, remaps
     return best
 
