@@ -172,8 +172,9 @@ def _agreeing(conf: MapConfig, db_path: Path, images_root: Path, tmp: Path, seed
     contradicted by its own verified pairs (`_contradicted`): each time under the next seed, on
     `REMAP_THREADS` threads, the first model started from the view in most of the contradicting
     pairs; keeps the best. When a new mapping is contradicted by exactly the pairs that contradicted
-    the one before it, those pairs are wrong whatever the model (matches on a repeated texture, a
-    view the camera model does not fit), and no more mappings follow.
+    the one before it, the fault is in those pairs' matches, not in how the mapper built the model,
+    and no more mappings follow (dtu-scan24 under exhaustive matching: the same 12 pairs under seeds
+    0 and 1, lab/notes/CAPTURES.md, section 15).
 
     The incremental mapper can bend a model where the views pass a place twice: the pairs that
     would close the loop never join a track, so nothing in the mapper sees them (1,000-image
