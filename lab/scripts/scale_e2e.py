@@ -15,7 +15,8 @@ parent takes the child's peak memory from wait4 (ru_maxrss, children included) a
 process tree's RSS and PSS (executor workers). The largest model is then scored against the
 true poses by `sara evaluate` (its AUC over all N (N - 1) / 2 pairs). Each (N, method) appends
 one JSON line to WORK/results.jsonl and is skipped when already there (a stopped bench resumes);
-a run past --timeout-min is killed and recorded as stopped, with the stages it had finished.
+a run past --timeout-min (default 40 minutes per 1,000 images) is killed and recorded as stopped,
+with the stages it had finished.
 With --resume (and a run folder kept by --keep-runs, in a WORK without that row) a stopped run is
 continued in place: the pipeline skips the stages it finished, and the row adds their earlier times.
 
@@ -205,8 +206,19 @@ def write_truth_model(world_dir: Path, gt_dir: Path) -> None:
     os.replace(tmp, gt_dir)
 
 
-def run_child(args: argparse.Namespace, world_dir: Path, run_dir: Path, method: str) -> dict[str, Any]:
-    """One (N, method) in a subprocess, stopped past --timeout-min; its resources as the parent sees them."""
+#: minutes a run may take per 1,000 images when --timeout-min is not given (40 for sizes up to
+#: 1,000); a 10,000-image SARA run's first mapping alone took over 39 minutes under load
+TIMEOUT_MIN_PER_1000 = 40.0
+
+
+def timeout_min(args: argparse.Namespace, n: int) -> float:
+    """--timeout-min, else TIMEOUT_MIN_PER_1000 per 1,000 images, at least TIMEOUT_MIN_PER_1000."""
+    return args.timeout_min if args.timeout_min is not None else TIMEOUT_MIN_PER_1000 * max(1.0, n / 1000)
+
+
+def run_child(args: argparse.Namespace, world_dir: Path, run_dir: Path, method: str,
+              limit_min: float) -> dict[str, Any]:
+    """One (N, method) in a subprocess, stopped past `limit_min` minutes; its resources as the parent sees them."""
     cmd = [sys.executable, str(Path(__file__).resolve()), "--child", str(world_dir), str(run_dir), method]
     for item in args.set:
         cmd += ["--set", item]
@@ -225,7 +237,7 @@ def run_child(args: argparse.Namespace, world_dir: Path, run_dir: Path, method: 
             rss, _, pss, _ = tree_usage(proc.pid)
             peak.update(tree_rss=max(peak["tree_rss"], rss), tree_pss=max(peak["tree_pss"], pss))
             loads.append(os.getloadavg()[0])
-            if stopped is None and time.perf_counter() - tic > args.timeout_min * 60:
+            if stopped is None and time.perf_counter() - tic > limit_min * 60:
                 stopped = {"reason": "time", "after_s": time.perf_counter() - tic}
                 os.killpg(proc.pid, signal.SIGKILL)
             time.sleep(POLL_S)
@@ -343,7 +355,7 @@ def bench(args: argparse.Namespace) -> None:
             earlier = _progress(run_dir / "progress.jsonl") if args.resume else {}
             row = {**({"resumed_after": earlier} if earlier.get("finished") else {}),
                    "N": n, "method": method, "set": args.set, "started": time.strftime("%Y-%m-%d %H:%M:%S"),
-                   **run_child(args, world_dir, run_dir, method)}
+                   **run_child(args, world_dir, run_dir, method, timeout_min(args, n))}
             row["eval"] = evaluate(run_dir, world_dir / "gt")
             with (work / RESULTS).open("a") as fh:
                 fh.write(json.dumps(row, default=str) + "\n")
@@ -470,7 +482,9 @@ def main() -> None:
     ap.add_argument("--sizes", default="200", help="comma-separated N")
     ap.add_argument("--methods", default="sara,sara-global,sequential,retrieval,vocab_tree",
                     help=f"comma-separated, of {', '.join(METHODS)}")
-    ap.add_argument("--timeout-min", type=float, default=40.0)
+    ap.add_argument("--timeout-min", type=float, default=None,
+                    help=f"minutes per run (default: {TIMEOUT_MIN_PER_1000:g} per 1,000 images, "
+                         f"at least {TIMEOUT_MIN_PER_1000:g})")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="sara option for every method")
     ap.add_argument("--keep-runs", action="store_true", help="keep each run's database and features link")
     ap.add_argument("--resume", action="store_true",
