@@ -37,6 +37,19 @@ def turned(rec: pycolmap.Reconstruction, image_id: int, degrees: float) -> pycol
     return bent
 
 
+def mapped_in_turn(monkeypatch, *models: pycolmap.Reconstruction) -> list[int]:
+    """`mapping._incremental` replaced: its k-th call gives `models[k]` (the last one for every later
+    call); returns the list the seeds of the calls go to."""
+    seeds: list[int] = []
+
+    def fake_incremental(conf, db, images, tmp, seed, progress, num_images, input_model, **kwargs):
+        seeds.append(seed)
+        return colmap.MappedModels({0: models[min(len(seeds), len(models)) - 1]})
+
+    monkeypatch.setattr(mapping, "_incremental", fake_incremental)
+    return seeds
+
+
 def test_a_true_model_agrees_with_every_pair(scene):
     rec, db_path = scene
     check = agreement(rec, db_path)
@@ -86,26 +99,14 @@ def test_a_contradicted_first_model_is_mapped_again_and_the_agreeing_one_kept(sc
 
 def test_an_agreeing_first_model_is_not_mapped_again(scene, tmp_path, monkeypatch):
     rec, db_path = scene
-    seeds = []
-
-    def fake_incremental(conf, db, images, tmp, seed, progress, num_images, input_model, **kwargs):
-        seeds.append(seed)
-        return colmap.MappedModels({0: rec})
-
-    monkeypatch.setattr(mapping, "_incremental", fake_incremental)
+    seeds = mapped_in_turn(monkeypatch, rec)
     recs, _, _ = mapping._map(MapConfig(), db_path, tmp_path, tmp_path, seed=0, progress=False)
     assert seeds == [0] and recs.remaps == 0 and recs.seed == 0
 
 
 def test_remaps_can_be_turned_off(scene, tmp_path, monkeypatch):
     rec, db_path = scene
-    seeds = []
-
-    def fake_incremental(conf, db, images, tmp, seed, progress, num_images, input_model, **kwargs):
-        seeds.append(seed)
-        return colmap.MappedModels({0: turned(rec, 3, 3.0)})
-
-    monkeypatch.setattr(mapping, "_incremental", fake_incremental)
+    seeds = mapped_in_turn(monkeypatch, turned(rec, 3, 3.0))
     recs, _, _ = mapping._map(MapConfig(contradicted_remaps=0), db_path, tmp_path, tmp_path, seed=0, progress=False)
     assert seeds == [0] and recs.remaps == 0 and len(recs.agreement_check.contradicted) == 5
 
@@ -114,14 +115,7 @@ def test_when_every_seed_is_contradicted_the_largest_model_is_kept(scene, tmp_pa
     rec, db_path = scene
     small = pycolmap.Reconstruction(turned(rec, 3, 3.0))
     small.deregister_frame(small.image(6).frame_id)
-    built = [small, turned(rec, 2, 3.0), turned(rec, 4, 5.0)]
-    seeds = []
-
-    def fake_incremental(conf, db, images, tmp, seed, progress, num_images, input_model, **kwargs):
-        seeds.append(seed)
-        return colmap.MappedModels({0: built[len(seeds) - 1]})
-
-    monkeypatch.setattr(mapping, "_incremental", fake_incremental)
+    seeds = mapped_in_turn(monkeypatch, small, turned(rec, 2, 3.0), turned(rec, 4, 5.0))
     recs, _, _ = mapping._map(MapConfig(), db_path, tmp_path, tmp_path, seed=0, progress=False)
     assert seeds == [0, 1, 2] and recs.remaps == MapConfig().contradicted_remaps == 2
     assert recs.seed == 1 and recs.largest == 6  # the first of the two 6-view models, as contradicted as the other
@@ -130,15 +124,9 @@ def test_when_every_seed_is_contradicted_the_largest_model_is_kept(scene, tmp_pa
 def test_a_mapping_contradicted_by_the_same_pairs_again_ends_the_remaps(scene, tmp_path, monkeypatch, caplog):
     """The pairs that contradict the first model contradict the next seed's model too: they are wrong
     whatever the model, so no third mapping follows (dtu-scan24 under exhaustive matching: the same 12
-    of 683 pairs under three seeds)."""
+    of 683 pairs under seeds 0 and 1)."""
     rec, db_path = scene
-    seeds = []
-
-    def fake_incremental(conf, db, images, tmp, seed, progress, num_images, input_model, **kwargs):
-        seeds.append(seed)
-        return colmap.MappedModels({0: turned(rec, 3, 3.0)})
-
-    monkeypatch.setattr(mapping, "_incremental", fake_incremental)
+    seeds = mapped_in_turn(monkeypatch, turned(rec, 3, 3.0))
     with caplog.at_level("WARNING", logger="sara.mapping"):
         recs, _, _ = mapping._map(MapConfig(), db_path, tmp_path, tmp_path, seed=0, progress=False)
     assert MapConfig().contradicted_remaps == 2 and seeds == [0, 1] and recs.remaps == 1
