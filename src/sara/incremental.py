@@ -35,7 +35,7 @@ from . import colmap, extract
 from .config import ExtractConfig
 from .execute import Executor
 from .features import features_file_name, make_backend
-from .features.sift import DatabaseToH5, unreadable
+from .features.sift import DatabaseToH5, not_extracted
 from .io import atomic_path, records
 from .io.h5 import has_features
 from .io.images import ImageSet, set_aside
@@ -138,10 +138,10 @@ def update_features(conf: ExtractConfig, images: ImageSet, out_dir: Path, *, exe
     if current.get("key") != key or current.get("phase") != "features":
         current = _plan(out_dir, conf, info, digests, key)
     tic = time.perf_counter()
-    extracted = _update_copies(conf, images, out_dir, compare(old_digests, digests), info, executor, progress)
+    extracted, failed = _update_copies(conf, images, out_dir, compare(old_digests, digests), info, executor, progress)
     colmap.copy_database(_work(out_dir) / extract.DB_NAME, _work(out_dir) / MATCHED_NAME)
     current.update(phase="swap", num_extracted=extracted, extract_time_s=time.perf_counter() - tic,
-                   extract_info=_new_info(out_dir, info, digests, extracted, time.perf_counter() - tic))
+                   extract_info=_new_info(out_dir, info, digests, extracted, failed, time.perf_counter() - tic))
     _save(out_dir, key, current)
     _swap_in(out_dir)
     save_digests()
@@ -195,48 +195,57 @@ def _remove(path: Path) -> None:
 
 
 def _update_copies(conf: ExtractConfig, images: ImageSet, out_dir: Path, change: Change, info: dict[str, Any],
-                   executor: Executor | None, progress: bool) -> int:
+                   executor: Executor | None, progress: bool) -> tuple[int, dict[str, str]]:
     """Delete the images that go from the database copy, import and extract those that come, and
-    write the new features file beside it; returns the number of images the update extracts."""
+    write the new features file beside it; returns the number of images the update extracts and
+    those it set aside (name -> why). With COLMAP's SIFT each new image is decoded once, by the
+    extraction's reader, which imports it too, as in a first run (`extract._extract_sift`)."""
     work = _work(out_dir)
     db = work / extract.DB_NAME
     colmap.delete_images(db, change.to_drop)
     backend = make_backend(conf)
     come = ImageSet(images.root, change.to_extract, {n: images.sizes[n] for n in change.to_extract})
-    uses_colmap_reader = hasattr(backend, "extract_to_database")
-    readable = set_aside(come, unreadable(come, progress)) if uses_colmap_reader else come
-    _import(db, images, [n for n in readable.names if n not in colmap.database_images(db)], conf, info)
-    todo = sorted(set(readable.names) - colmap.images_with_keypoints(db))
-    if uses_colmap_reader:
+    extracted: dict[str, Any] = {}
+    if hasattr(backend, "extract_to_database"):
+        todo = sorted(set(come.names) - colmap.images_with_keypoints(db))
         if todo:
-            backend.extract_to_database(db, readable, todo, progress=progress)
-        extracted: dict[str, Any] = {}
+            camera_mode, existing = _camera_of_new(db, images, todo, info)
+            backend.extract_to_database(db, come, todo, progress=progress, camera_mode=camera_mode,
+                                        existing_camera_id=existing)
+        failed = not_extracted(come, colmap.images_with_keypoints(db), todo)
     else:
+        colmap.import_images(db, images.root, [n for n in come.names if n not in colmap.database_images(db)],
+                             **_import_options(db, images, come.names, conf, info))
         added_h5 = work / "added.h5"
         if not added_h5.exists():  # else extracted before a kill: `extract_to_h5` renames it when complete
-            extract.extract_to_h5(backend, conf, readable, added_h5, executor, progress)
+            extract.extract_to_h5(backend, conf, come, added_h5, executor, progress)
         with h5py.File(added_h5, "r") as h5:
-            done = sorted(n for n in readable.names if has_features(h5, n))
+            done = sorted(n for n in come.names if has_features(h5, n))
+        failed = {n: "not extracted (unreadable)" for n in come.names if n not in done}
         extracted = {"path": added_h5, "names": done}
         extract.import_keypoints(db, added_h5, done)
+    set_aside(come, failed)  # one warning each
     _write_features(out_dir, conf, images, change, extracted)
-    return len(readable.names)  # over every attempt: a killed update resumed counts them once
+    return len(come.names) - len(failed), failed  # over every attempt: a killed update resumed counts them once
 
 
-def _import(db: Path, images: ImageSet, names: list[str], conf: ExtractConfig, info: dict[str, Any]) -> None:
-    """Import the new images: into the shared camera when the run has one and they have its size,
-    else each with its own camera (or per folder, as the run did)."""
-    if not names:
-        return
+def _camera_of_new(db: Path, images: ImageSet, names: list[str], info: dict[str, Any]) -> tuple[str, int | None]:
+    """(camera mode, existing camera id) for the new images: the run's shared camera when it has
+    one and they have its size, else a camera each (or per folder, as the run did)."""
     mode = info.get("camera_mode", "per_image")
     shared = colmap.shared_camera(db) if mode == "single" else None
-    same = shared is not None and all(images.sizes[n] == (shared.width, shared.height) for n in names)
+    if shared is not None and all(images.sizes[n] == (shared.width, shared.height) for n in names):
+        return "single", shared.camera_id
     # pycolmap makes a camera per image in `per_image` mode even when given the shared one
-    camera_mode = "single" if same else "per_folder" if mode == "per_folder" else "per_image"
-    colmap.import_images(db, images.root, names, camera_mode=camera_mode,
-                         camera_model=conf.camera_model, camera_params=conf.camera_params,
-                         default_focal_length_factor=conf.default_focal_length_factor,
-                         existing_camera_id=shared.camera_id if same else None)
+    return ("per_folder" if mode == "per_folder" else "per_image"), None
+
+
+def _import_options(db: Path, images: ImageSet, names: list[str], conf: ExtractConfig,
+                    info: dict[str, Any]) -> dict[str, Any]:
+    """`colmap.import_images`' options for the new images (cameras as `_camera_of_new`)."""
+    camera_mode, existing = _camera_of_new(db, images, names, info)
+    return {"camera_mode": camera_mode, "camera_model": conf.camera_model, "camera_params": conf.camera_params,
+            "default_focal_length_factor": conf.default_focal_length_factor, "existing_camera_id": existing}
 
 
 def _write_features(out_dir: Path, conf: ExtractConfig, images: ImageSet, change: Change,
@@ -264,14 +273,15 @@ def _copy_group(src: h5py.File, dst: h5py.File, name: str) -> None:
     src.copy(src[name], dst.require_group(parent) if parent else dst, name=name.rpartition("/")[2])
 
 
-def _new_info(out_dir: Path, info: dict[str, Any], digests: dict[str, str], extracted: int,
+def _new_info(out_dir: Path, info: dict[str, Any], digests: dict[str, str], extracted: int, failed: dict[str, str],
               elapsed: float) -> dict[str, Any]:
-    """The extract stage's record after the update: its counts over all images now."""
+    """The extract stage's record after the update: its counts over all images now, and the images
+    set aside with the reason (`failed`: the update's, with those of the run before it)."""
     work = _work(out_dir)
     with h5py.File(work / info.get("features", "features-sift.h5"), "r") as h5:
         names = [n for n in digests if n in h5]
         counts = {n: int(h5[n]["keypoints"].shape[0]) for n in names}
-    skipped = {n: why for n, why in info.get("skipped", {}).items() if n in digests and n not in counts}
+    skipped = {n: why for n, why in {**info.get("skipped", {}), **failed}.items() if n in digests and n not in counts}
     skipped.update({n: "not extracted (unreadable)" for n in digests if n not in counts and n not in skipped})
     return {**info, **extract.summarize(counts), "skipped": skipped, "images": digests, "time_s": elapsed,
             "num_extracted": extracted}

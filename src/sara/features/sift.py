@@ -106,17 +106,6 @@ class DatabaseToH5:
         return read_open(self.h5, name, top_k=top_k)
 
 
-def unreadable(images: ImageSet, progress: bool) -> dict[str, str]:
-    """Images that COLMAP's reader (the one its SIFT extraction uses) cannot decode: name -> why.
-    Decodes every image: the extraction itself learns the same in its one pass (`not_extracted`)."""
-    out = {}
-    for name in tqdm(images.names, desc="check images (COLMAP)", unit="img", disable=not progress):
-        problem = colmap.image_read_problem(images.root / name)
-        if problem is not None:
-            out[name] = problem
-    return out
-
-
 def not_extracted(images: ImageSet, with_keypoints: set[str], todo: list[str]) -> dict[str, str]:
     """The images of `todo` that COLMAP's extraction left without features, name -> why: a file its
     reader cannot decode, or one gone or changed since the scan."""
