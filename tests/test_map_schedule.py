@@ -72,7 +72,8 @@ def test_a_large_scene_is_mapped_step_by_step_with_the_direct_solver(monkeypatch
 
     seen: list = []
 
-    def fake_stepwise(db, images, out, opts, *, direct_up_to, on_next_image, input_path, first_image_id=None):
+    def fake_stepwise(db, images, out, opts, *, direct_up_to, on_next_image, input_path, first_image_id=None,
+                      checkpoint=None):
         seen.append((direct_up_to, opts.ba_global_max_refinements, opts.ba_global_frames_ratio))
         return {}
 
@@ -115,9 +116,13 @@ def test_a_model_mapped_before_the_setting_existed_is_not_mapped_again():
     from sara.io import fingerprint
 
     conf = make_config("sift-offline", {}).map
-    added = ("ba_global_growth", "ba_global_refinements", "ba_direct_max_images", "contradicted_remaps")
+    added = ("ba_global_growth", "ba_global_refinements", "ba_direct_max_images", "contradicted_remaps",
+             "checkpoint_minutes")
     before = {k: v for k, v in conf.__dict__.items() if k not in added}
     assert mapping.state_key(conf, 0, "up") == fingerprint({"conf": before, "seed": 0, "upstream": "up"})
+    # how often a long mapping keeps its models changes no model: never in the key
+    assert mapping.state_key(dataclasses.replace(conf, checkpoint_minutes=0.0), 0, "up") == \
+        mapping.state_key(conf, 0, "up")
     for setting in ({"ba_global_growth": 1.4}, {"ba_global_refinements": 1}, {"ba_direct_max_images": 3000},
                     {"contradicted_remaps": 0}):
         by_hand = dataclasses.replace(conf, **setting)

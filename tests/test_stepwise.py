@@ -3,6 +3,7 @@ makes, with global adjustments allowed Ceres' direct sparse solver up to the siz
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -168,3 +169,89 @@ def test_the_first_model_starts_from_the_given_image_and_the_others_still_start(
     second, first = list(range(11, 21)), list(range(1, 11))
     assert groups(None) == [second, first]
     assert groups(3) == [first, second]
+
+
+class Killed(Exception):
+    """Stands for the signal that stops a run."""
+
+
+def _killed_after(n: int):
+    """An `on_next_image` that stops the mapping at its `n`-th registered view; counts them all."""
+    seen = []
+
+    def on_next_image():
+        seen.append(1)
+        if len(seen) == n:
+            raise Killed
+    return on_next_image, seen
+
+
+def test_a_killed_mapping_resumes_from_its_checkpoint(database: Path, tmp_path: Path, caplog):
+    """Stopped at its 12th view, the mapping has kept the model as of its last global adjustment;
+    run again, it registers only the views that model lacks and ends as the uninterrupted one."""
+    images = database.parent / "images"
+    checkpoint = stepwise.Checkpoint(tmp_path / "ckpt", "key-1", every_s=0.0)
+    stop, _ = _killed_after(12)
+    with pytest.raises(Killed):
+        stepwise.incremental_mapping(database, images, tmp_path / "a", _options(), direct_up_to=5000,
+                                     on_next_image=stop, checkpoint=checkpoint)
+    record = json.loads((tmp_path / "ckpt" / "checkpoint.json").read_text())
+    assert record["current"] == 0 and 2 < record["views"][0] < 14  # the first pair's two, then 12
+    count, seen = _killed_after(0)
+    with caplog.at_level("WARNING", logger="sara.colmap.stepwise"):
+        resumed = stepwise.incremental_mapping(database, images, tmp_path / "b", _options(), direct_up_to=5000,
+                                               on_next_image=count, checkpoint=checkpoint)
+    assert any("resuming the mapping from its checkpoint" in r.getMessage() for r in caplog.records)
+    assert len(seen) == 20 - record["views"][0]  # the kept views were not registered again
+    assert json.loads((tmp_path / "ckpt" / "checkpoint.json").read_text())["current"] is None  # ended
+    whole = stepwise.incremental_mapping(database, images, tmp_path / "c", _options(), direct_up_to=5000)
+    mine, theirs = _centres(resumed[0]), _centres(whole[0])
+    assert sorted(mine) == sorted(theirs) and len(mine) == 20
+    names = sorted(mine)
+    assert _similarity_residual(np.array([mine[n] for n in names]), np.array([theirs[n] for n in names])) < 1e-4
+
+
+def test_an_ended_checkpoint_gives_its_models_and_another_key_is_ignored(database: Path, tmp_path: Path):
+    images = database.parent / "images"
+    checkpoint = stepwise.Checkpoint(tmp_path / "ckpt", "key-1", every_s=1e9)  # written once, at the end
+    first = stepwise.incremental_mapping(database, images, tmp_path / "a", _options(), direct_up_to=5000,
+                                         checkpoint=checkpoint)
+    count, seen = _killed_after(0)
+    again = stepwise.incremental_mapping(database, images, tmp_path / "b", _options(), direct_up_to=5000,
+                                         on_next_image=count, checkpoint=checkpoint)
+    assert not seen and _centres(again[0]).keys() == _centres(first[0]).keys()  # nothing mapped again
+    assert (tmp_path / "b" / "0" / "images.bin").exists()
+    other = stepwise.Checkpoint(tmp_path / "ckpt", "key-2", every_s=1e9)  # other matches: from the start
+    stepwise.incremental_mapping(database, images, tmp_path / "c", _options(), direct_up_to=5000,
+                                 on_next_image=count, checkpoint=other)
+    assert len(seen) == 18  # every view but the first pair's
+
+
+def test_the_map_stage_keeps_the_checkpoint_of_a_killed_run_and_removes_it_when_done(database: Path,
+                                                                                       tmp_path: Path, monkeypatch):
+    from sara import mapping
+    from sara.config import make_config
+
+    out = tmp_path / "out"
+    out.mkdir()
+    conf = make_config("sift-offline", {"map.ba_direct_max_images": 5000, "map.checkpoint_minutes": 1e-9,
+                                        "map.num_threads": 1, "map.contradicted_remaps": 0}).map
+    register = stepwise._Run.register_next
+    calls = []
+
+    def stopping(self, *args):
+        calls.append(1)
+        if len(calls) == 10:
+            raise KeyboardInterrupt
+        return register(self, *args)
+
+    monkeypatch.setattr(stepwise._Run, "register_next", stopping)
+    with pytest.raises(KeyboardInterrupt):
+        mapping.run(conf, database, database.parent / "images", out, progress=False)
+    kept = out / ".sara" / mapping.CHECKPOINT
+    assert json.loads((kept / "checkpoint.json").read_text())["current"] == 0
+    assert not (out / "sparse").exists()
+    monkeypatch.setattr(stepwise._Run, "register_next", register)
+    mapping.run(conf, database, database.parent / "images", out, progress=False)
+    assert len(pycolmap.Reconstruction(str(out / "sparse" / "0")).reg_image_ids()) == 20
+    assert not kept.exists()

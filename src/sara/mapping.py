@@ -23,7 +23,7 @@ from tqdm import tqdm
 
 from . import colmap
 from .colmap import refine as colmap_refine
-from .colmap.stepwise import DIRECT_SOLVER_MAX_IMAGES
+from .colmap.stepwise import DIRECT_SOLVER_MAX_IMAGES, Checkpoint
 from .config import MapConfig
 from .io import DamagedOutputError, NoResultError, file_digest, fingerprint, records, without_added_later
 
@@ -32,6 +32,7 @@ logger = logging.getLogger(__name__)
 STAGE = "map"
 PARTIAL = "sparse.partial"
 OLD = "sparse.old"
+CHECKPOINT = "map-checkpoint"
 
 
 def run(conf: MapConfig, db_path: Path, images_root: Path, out_dir: Path, *, seed: int = 0,
@@ -54,6 +55,10 @@ def run(conf: MapConfig, db_path: Path, images_root: Path, out_dir: Path, *, see
         return sparse
     previous = records.read_record(out_dir, STAGE)
     records.mark_started(out_dir, STAGE, key)
+    checkpoint = Checkpoint(out_dir / ".sara" / CHECKPOINT, key, conf.checkpoint_minutes * 60) \
+        if conf.checkpoint_minutes > 0 and input_model is None else None
+    if checkpoint is not None and overwrite:
+        checkpoint.remove()
     tmp = out_dir / ".sara" / PARTIAL
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
@@ -63,15 +68,17 @@ def run(conf: MapConfig, db_path: Path, images_root: Path, out_dir: Path, *, see
                                                 min_num_inliers)
         else:
             recs, num_images, elapsed = _map(conf, db_path, images_root, tmp, seed, progress,
-                                             min_num_inliers=min_num_inliers)
+                                             min_num_inliers=min_num_inliers, checkpoint=checkpoint)
         sizes = recs.write_by_size(tmp)
         if not sizes:
             kept = "; the previous model in sparse/ is kept" if colmap_models(sparse) else ""
             reason = no_model_reason(db_path, conf, min_num_inliers)
             raise NoResultError(f"map: no model could be built: {reason}{kept}")
-    except BaseException:
+    except BaseException as exc:
         shutil.rmtree(tmp, ignore_errors=True)
         records.restore(out_dir, STAGE, previous)
+        if checkpoint is not None and isinstance(exc, NoResultError):
+            checkpoint.remove()  # else kept: the same run resumes from it
         raise
     if commit is not None:
         commit()
@@ -81,6 +88,8 @@ def run(conf: MapConfig, db_path: Path, images_root: Path, out_dir: Path, *, see
             "continued": input_model is not None and conf.mapper == "incremental"}
     info.update(_first_model_check(recs, previous if info["continued"] else None))
     records.mark_done(out_dir, STAGE, key, info, outputs={"sparse": model_digest(sparse)})
+    if checkpoint is not None:
+        checkpoint.remove()
     if len(sizes) > 1:
         logger.warning("map: the scene split into %d models of %s images", len(sizes), sizes)
     return sparse
@@ -101,14 +110,16 @@ def _first_model_check(recs: colmap.MappedModels, previous: dict[str, Any] | Non
 
 
 def _map(conf: MapConfig, db_path: Path, images_root: Path, tmp: Path, seed: int,
-         progress: bool, input_model: Path | None = None, *,
-         min_num_inliers: int = 15) -> tuple[colmap.MappedModels, int, float]:
-    """COLMAP's mapper into `tmp` (continuing from `input_model` when given, incremental only)."""
+         progress: bool, input_model: Path | None = None, *, min_num_inliers: int = 15,
+         checkpoint: Checkpoint | None = None) -> tuple[colmap.MappedModels, int, float]:
+    """COLMAP's mapper into `tmp` (continuing from `input_model` when given, incremental only); the
+    first mapping of a step-by-step one keeps its models in `checkpoint` and resumes from them."""
     num_images = len(colmap.database_images(db_path))
     colmap.set_seed(seed)
     tic = time.perf_counter()
     if conf.mapper == "incremental":
-        recs = _incremental(conf, db_path, images_root, tmp, seed, progress, num_images, input_model)
+        recs = _incremental(conf, db_path, images_root, tmp, seed, progress, num_images, input_model,
+                            checkpoint=checkpoint)
         if input_model is None:
             recs = _forward_start(conf, db_path, images_root, tmp, seed, progress, num_images, recs,
                                   min_num_inliers)
@@ -276,7 +287,7 @@ def ba_direct_max_images(conf: MapConfig, num_images: int) -> int | None:
 
 def _incremental(conf: MapConfig, db_path: Path, images_root: Path, tmp: Path, seed: int, progress: bool,
                  num_images: int, input_model: Path | None, *, forward_start: bool = False,
-                 first_image: str | None = None) -> colmap.MappedModels:
+                 first_image: str | None = None, checkpoint: Checkpoint | None = None) -> colmap.MappedModels:
     with tqdm(total=num_images, desc="map (incremental)", unit="img", disable=not progress) as bar:
         return colmap.incremental_mapping(
             db_path, images_root, tmp, seed=seed, min_model_size=conf.min_model_size,
@@ -285,7 +296,8 @@ def _incremental(conf: MapConfig, db_path: Path, images_root: Path, tmp: Path, s
             on_next_image=lambda: bar.update(), input_path=input_model, forward_start=forward_start,
             ba_global_ratio=ba_global_growth(conf, num_images),
             ba_global_refinements=ba_global_refinements(conf, num_images),
-            direct_solver_up_to=ba_direct_max_images(conf, num_images), first_image=first_image)
+            direct_solver_up_to=ba_direct_max_images(conf, num_images), first_image=first_image,
+            checkpoint=checkpoint)
 
 
 def _extend(conf: MapConfig, db_path: Path, images_root: Path, tmp: Path, seed: int, progress: bool,
@@ -401,6 +413,10 @@ ADDED_LATER: dict[str, Any] = {"ba_global_growth": 0.0, "ba_global_refinements":
                                "contradicted_remaps": 2}
 
 
+#: settings that do not change the model: how often a long mapping keeps its models so far
+NOT_IN_KEY = ("checkpoint_minutes",)
+
+
 def state_key(conf: MapConfig, seed: int, upstream_key: str) -> str:
-    return fingerprint({"conf": without_added_later(conf.__dict__, ADDED_LATER), "seed": seed,
-                        "upstream": upstream_key})
+    values = {k: v for k, v in conf.__dict__.items() if k not in NOT_IN_KEY}
+    return fingerprint({"conf": without_added_later(values, ADDED_LATER), "seed": seed, "upstream": upstream_key})

@@ -60,6 +60,7 @@ def incremental_mapping(
     on_next_image: Callable[[], None] | None = None, input_path: Path | None = None,
     forward_start: bool = False, ba_global_ratio: float | None = None, ba_global_refinements: int | None = None,
     direct_solver_up_to: int | None = None, first_image: str | None = None,
+    checkpoint: stepwise.Checkpoint | None = None,
 ) -> MappedModels:
     """COLMAP's incremental mapper; with `input_path` it continues from that model (registers the
     images it lacks, then bundle-adjusts) instead of starting from an empty one.
@@ -77,6 +78,8 @@ def incremental_mapping(
     `first_image`: the first model starts from this image (by name) and the partner the mapper picks
     for it; the mapping is then driven step by step (direct solver as COLMAP sets it unless
     `direct_solver_up_to` says more).
+    `checkpoint`: where the step-by-step mapping keeps its models so far and resumes from them
+    (`stepwise.Checkpoint`; COLMAP's own loop has none).
     """
     opts = pycolmap.IncrementalPipelineOptions()
     if forward_start:
@@ -97,7 +100,7 @@ def incremental_mapping(
             first_id = None if first_image is None else database_images(Path(db_path))[first_image]
             return MappedModels(stepwise.incremental_mapping(
                 Path(db_path), Path(image_dir), Path(out_dir), opts, direct_up_to=direct_solver_up_to or 0,
-                on_next_image=on_next_image, input_path=input_path, first_image_id=first_id))
+                on_next_image=on_next_image, input_path=input_path, first_image_id=first_id, checkpoint=checkpoint))
         return MappedModels(pycolmap.incremental_mapping(
             str(db_path), str(image_dir), str(out_dir), options=opts,
             input_path=str(input_path) if input_path is not None else "",

@@ -12,17 +12,26 @@ alone, triangulation, local refinement, global refinement by growth, several mod
 relaxations of the first pair's thresholds), with two changes: its global adjustments may use the
 direct sparse solver up to `direct_up_to` images, and a model given to continue from (a repair
 round's) is grown on a lighter schedule (`_Run.model`). Each model's time by step is logged.
+
+A `Checkpoint` writes the models so far every few minutes (after a global adjustment) and once
+the mapping ends; a mapping of the same key killed before its stage finished resumes from them:
+the models that were done stay as they are and the one that was growing grows on.
 """
 
 from __future__ import annotations
 
 import contextlib
 import copy
+import json
 import logging
+import os
+import shutil
 import time
 from collections import Counter
 from collections.abc import Callable, Iterator
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import pycolmap
 
@@ -43,15 +52,60 @@ MIN_INITIAL_REG_TRIALS = 30
 CONTINUED_LOCAL_REFINEMENTS = 1
 
 
+@dataclass(frozen=True)
+class Checkpoint:
+    """Where a mapping keeps its models so far (`folder`), for which inputs (`key`), and how often
+    it writes them (at most every `every_s` seconds, after a global adjustment)."""
+
+    folder: Path
+    key: str
+    every_s: float
+
+    def save(self, manager: pycolmap.ReconstructionManager, current: int | None) -> None:
+        """Write every model of `manager` (`current`: the one growing; None: the mapping ended); the
+        folder is replaced only once the new one is complete."""
+        new, old = self.folder.with_name(self.folder.name + ".next"), self.folder.with_name(self.folder.name + ".old")
+        shutil.rmtree(new, ignore_errors=True)
+        new.mkdir(parents=True)
+        views = []
+        for idx in range(manager.size()):
+            (new / str(idx)).mkdir()
+            manager.get(idx).write(str(new / str(idx)))
+            views.append(manager.get(idx).num_reg_frames())
+        (new / "checkpoint.json").write_text(json.dumps({"key": self.key, "current": current, "views": views}))
+        shutil.rmtree(old, ignore_errors=True)
+        if self.folder.exists():
+            os.replace(self.folder, old)
+        os.replace(new, self.folder)
+        shutil.rmtree(old, ignore_errors=True)
+
+    def restore(self, manager: pycolmap.ReconstructionManager) -> dict[str, Any] | None:
+        """Read the models of a checkpoint of this key into `manager` (empty); returns its record
+        (`current`, `views`), or None when there is none (or one of other inputs)."""
+        for folder in (self.folder, self.folder.with_name(self.folder.name + ".old")):
+            with contextlib.suppress(OSError, ValueError):
+                record = json.loads((folder / "checkpoint.json").read_text())
+                if record.get("key") == self.key:
+                    for idx in range(len(record["views"])):
+                        manager.read(str(folder / str(idx)))
+                    return record
+        return None
+
+    def remove(self) -> None:
+        for suffix in ("", ".next", ".old"):
+            shutil.rmtree(self.folder.with_name(self.folder.name + suffix), ignore_errors=True)
+
+
 def incremental_mapping(db_path: Path, image_dir: Path, out_dir: Path, opts: pycolmap.IncrementalPipelineOptions,
                         *, direct_up_to: int, on_next_image: Callable[[], None] | None = None,
                         input_path: Path | None = None, first_image_id: int | None = None,
-                        ) -> dict[int, pycolmap.Reconstruction]:
+                        checkpoint: Checkpoint | None = None) -> dict[int, pycolmap.Reconstruction]:
     """Map `db_path` as `pycolmap.incremental_mapping` does, the global adjustments allowed Ceres'
     direct sparse solver up to `direct_up_to` images; each model is written to `out_dir/<index>`.
     With `first_image_id` the first model starts from that image and the partner COLMAP picks for
     it (the later models as COLMAP starts them; COLMAP's own `init_image_id1` would hold every model
-    to that image, so the views it cannot reach got no model)."""
+    to that image, so the views it cannot reach got no model). With `checkpoint` (and no
+    `input_path`) the models so far are kept there, and a mapping that finds them goes on from them."""
     cache_options = pycolmap.DatabaseCacheOptions()
     cache_options.min_num_matches = opts.min_num_matches
     cache_options.ignore_watermarks = opts.ignore_watermarks
@@ -60,9 +114,17 @@ def incremental_mapping(db_path: Path, image_dir: Path, out_dir: Path, opts: pyc
     manager = pycolmap.ReconstructionManager()
     if input_path is not None:
         manager.read(str(input_path))
-    run = _Run(opts, cache, manager, direct_up_to, on_next_image, first_image_id)
-    if cache.num_images() > 0:
-        run.all()
+        checkpoint = None
+    resumed = checkpoint.restore(manager) if checkpoint is not None else None
+    if resumed is not None:
+        logger.warning("map: resuming the mapping from its checkpoint: %d models of %s views%s", len(resumed["views"]),
+                       resumed["views"], "" if resumed["current"] is None else ", the last one growing")
+        first_image_id = None
+    run = _Run(opts, cache, manager, direct_up_to, on_next_image, first_image_id, checkpoint)
+    if cache.num_images() > 0 and (resumed is None or resumed["current"] is not None):
+        run.all(resumed)
+        if checkpoint is not None:
+            checkpoint.save(manager, None)
     models = {}
     for idx in range(manager.size()):
         rec = manager.get(idx)
@@ -79,8 +141,10 @@ class _Run:
 
     def __init__(self, opts: pycolmap.IncrementalPipelineOptions, cache: pycolmap.DatabaseCache,
                  manager: pycolmap.ReconstructionManager, direct_up_to: int,
-                 on_next_image: Callable[[], None] | None, first_image_id: int | None = None) -> None:
+                 on_next_image: Callable[[], None] | None, first_image_id: int | None = None,
+                 checkpoint: Checkpoint | None = None) -> None:
         self.opts, self.cache, self.manager, self.on_next_image = opts, cache, manager, on_next_image
+        self.checkpoint, self.saved_at, self.current = checkpoint, time.monotonic(), 0
         self.pipeline = pycolmap.IncrementalPipeline(opts, cache, manager)
         self.first_pipeline = None  # starts the first new model from a given image, then is dropped
         if first_image_id is not None:
@@ -96,11 +160,20 @@ class _Run:
         self.kinds = [True] if opts.structure_less_registration_only else fallback
         self.spent_s: Counter[str] = Counter()  # wall seconds of the current model by step, for the log
 
-    def all(self) -> None:
+    def all(self, resumed: dict[str, Any] | None = None) -> None:
+        """With `resumed` (a checkpoint's record, its models in the manager): the finished models are
+        the mapper's again as they were, and the growing one grows on as a first mapping's would."""
         num_images = self.cache.num_images()
         mapper_options = self.opts.get_mapper()
         mapper = pycolmap.IncrementalMapper(self.cache)
-        self.models(mapper, mapper_options, cont=self.manager.size() > 0)
+        if resumed is None:
+            self.models(mapper, mapper_options, cont=self.manager.size() > 0)
+        else:
+            for idx in range(self.manager.size()):
+                if idx != resumed["current"]:  # their views count as registered, as when they were built
+                    mapper.begin_reconstruction(self.manager.get(idx))
+                    mapper.end_reconstruction(False)
+            self.models(mapper, mapper_options, cont=True, growing=resumed["current"])
         for _ in range(2):  # COLMAP relaxes the first pair's inliers, then its angle, and tries again
             for relax in (_halve_inliers, _halve_angle):
                 if mapper.num_total_reg_images() == num_images:
@@ -110,12 +183,14 @@ class _Run:
                 self.models(mapper, mapper_options, cont=False)
 
     def models(self, mapper: pycolmap.IncrementalMapper, mapper_options: pycolmap.IncrementalMapperOptions,
-               *, cont: bool) -> None:
+               *, cont: bool, growing: int | None = None) -> None:
+        """New models until the views run out; with `cont` the first trial continues model 0 (a
+        repair's model), or model `growing` of a resumed mapping."""
         status = pycolmap.IncrementalPipelineStatus
         for trial in range(self.opts.init_num_trials):
-            idx = 0 if cont and trial == 0 else self.manager.add()
-            rec = self.manager.get(idx)
-            result = self.model(mapper, mapper_options, rec)
+            idx = (growing or 0) if cont and trial == 0 else self.manager.add()
+            self.current, rec = idx, self.manager.get(idx)
+            result = self.model(mapper, mapper_options, rec, resumed=growing is not None and trial == 0)
             if result == status.NO_INITIAL_PAIR:
                 mapper.end_reconstruction(True)
                 self.manager.delete(idx)
@@ -139,7 +214,7 @@ class _Run:
                 return
 
     def model(self, mapper: pycolmap.IncrementalMapper, mapper_options: pycolmap.IncrementalMapperOptions,
-              rec: pycolmap.Reconstruction) -> pycolmap.IncrementalPipelineStatus:
+              rec: pycolmap.Reconstruction, *, resumed: bool = False) -> pycolmap.IncrementalPipelineStatus:
         """Grow `rec` (from a first pair when empty) until no view registers.
 
         A model given to continue from is already adjusted as a whole, and the views added to it
@@ -150,11 +225,11 @@ class _Run:
         10,000-image world: 314 s, then 295 s). Continuing a 2,353-view
         model of the 3,000-image synthetic world by 600 views took 153 s instead of 302 s (local
         adjustments 95 s against 168 s, global 51 s against 128 s) for the same views and AUC@1
-        to 0.0001 (lab/notes/SCALE.md)."""
+        to 0.0001 (lab/notes/SCALE.md). A model `resumed` from a checkpoint grows as it did before."""
         status = pycolmap.IncrementalPipelineStatus
         mapper.begin_reconstruction(rec)
-        continued = rec.num_reg_frames() > 0
-        if not continued:
+        continued = rec.num_reg_frames() > 0 and not resumed
+        if rec.num_reg_frames() == 0:
             start = self.start(mapper, mapper_options, rec)
             if start != status.SUCCESS:
                 return start
@@ -192,7 +267,8 @@ class _Run:
                     ba_frames, ba_points = rec.num_reg_frames(), rec.num_points3D()
         if rec.num_reg_frames() > 0 and rec.num_reg_frames() != ba_frames and rec.num_points3D() != ba_points:
             self.refine(mapper, mapper_options)
-        logger.info("map: model of %d views (%s): %s", rec.num_reg_frames(), "continued" if continued else "new",
+        logger.info("map: model of %d views (%s): %s", rec.num_reg_frames(),
+                    "continued" if continued else "resumed" if resumed else "new",
                     ", ".join(f"{step} {seconds:.1f} s" for step, seconds in self.spent_s.items()))
         return status.SUCCESS
 
@@ -242,6 +318,10 @@ class _Run:
             mapper.filter_frames(mapper_options)
         logger.info("map: global adjustment of %d views in %.1f s", mapper.reconstruction.num_reg_frames(),
                     self.spent_s["global adjustment"] - before_s)
+        if self.checkpoint is not None and time.monotonic() - self.saved_at >= self.checkpoint.every_s:
+            with self.timed("checkpoint"):
+                self.checkpoint.save(self.manager, self.current)
+            self.saved_at = time.monotonic()
 
 
 def _halve_inliers(options: pycolmap.IncrementalMapperOptions) -> None:
