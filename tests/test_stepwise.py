@@ -255,3 +255,14 @@ def test_the_map_stage_keeps_the_checkpoint_of_a_killed_run_and_removes_it_when_
     mapping.run(conf, database, database.parent / "images", out, progress=False)
     assert len(pycolmap.Reconstruction(str(out / "sparse" / "0")).reg_image_ids()) == 20
     assert not kept.exists()
+
+
+def test_a_damaged_checkpoint_is_mapped_from_the_start(database: Path, tmp_path: Path):
+    images = database.parent / "images"
+    checkpoint = stepwise.Checkpoint(tmp_path / "ckpt", "key-1", every_s=1e9)
+    stepwise.incremental_mapping(database, images, tmp_path / "a", _options(), direct_up_to=5000, checkpoint=checkpoint)
+    (tmp_path / "ckpt" / "0" / "images.bin").write_bytes(b"\0" * 10)
+    count, seen = _killed_after(0)
+    again = stepwise.incremental_mapping(database, images, tmp_path / "b", _options(), direct_up_to=5000,
+                                         on_next_image=count, checkpoint=checkpoint)
+    assert len(seen) == 18 and len(again) == 1 and again[0].num_reg_images() == 20

@@ -83,12 +83,16 @@ class Checkpoint:
         """Read the models of a checkpoint of this key into `manager` (empty); returns its record
         (`current`, `views`), or None when there is none (or one of other inputs)."""
         for folder in (self.folder, self.folder.with_name(self.folder.name + ".old")):
-            with contextlib.suppress(OSError, ValueError):
+            try:
                 record = json.loads((folder / "checkpoint.json").read_text())
                 if record.get("key") == self.key:
                     for idx in range(len(record["views"])):
                         manager.read(str(folder / str(idx)))
+                    if [manager.get(i).num_reg_frames() for i in range(manager.size())] != record["views"]:
+                        raise ValueError("the models differ from the record")
                     return record
+            except (OSError, ValueError, RuntimeError, KeyError, TypeError, IndexError):  # damaged: not used
+                manager.clear()
         return None
 
     def remove(self) -> None:
