@@ -4,8 +4,10 @@
 
 RUN_DIR: a run folder kept by `scale_e2e.py --keep-runs` (its `database.db` and `images`). The map
 stage (`sara.mapping.run`, this release's defaults: step by step from 1,000 images) maps a copy of
-its database three times, each in a process of its own: `whole` uninterrupted; `killed` stopped by
-SIGINT after --kill-after-s seconds, then the same call again, which resumes from the checkpoint.
+its database three times, each in a process of its own: `whole` uninterrupted; `killed` killed
+(SIGKILL: nothing cleans up) after --kill-after-s seconds, then the same call again, which resumes
+from the checkpoint. (SIGINT would not do: a process started in the background of a script
+inherits SIGINT ignored.)
 Writes WORK/map_resume.json: wall times, the checkpoint's views at the kill, and for both models
 the registered views and AUC (`sara evaluate` against GT).
 """
@@ -38,7 +40,7 @@ def _map(args: argparse.Namespace, case: Path, kill_after_s: float | None) -> di
     try:
         proc.wait(timeout=kill_after_s)
     except subprocess.TimeoutExpired:
-        proc.send_signal(signal.SIGINT)
+        proc.send_signal(signal.SIGKILL)
         proc.wait()
     return {"wall_s": round(time.perf_counter() - tic, 1), "returncode": proc.returncode}
 
