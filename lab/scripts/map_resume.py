@@ -25,8 +25,12 @@ from pathlib import Path
 
 
 def _child(db: Path, images: Path, out: Path, minutes: float) -> None:
+    import logging
+
     from sara import mapping
     from sara.config import make_config
+
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")  # sara's own lines
 
     conf = make_config("sift-offline", {"map.checkpoint_minutes": minutes}).map
     mapping.run(conf, db, images, out, progress=False)
@@ -65,14 +69,16 @@ def main() -> None:
     ap.add_argument("work", type=Path)
     ap.add_argument("--kill-after-s", type=float, required=True)
     ap.add_argument("--checkpoint-minutes", type=float, default=1.0)
+    ap.add_argument("--keep-whole", action="store_true", help="reuse WORK/whole and its time from WORK/map_resume.json")
     args = ap.parse_args()
     result: dict = {"kill_after_s": args.kill_after_s, "checkpoint_minutes": args.checkpoint_minutes}
-    for name in ("whole", "killed"):
+    earlier = json.loads((args.work / "map_resume.json").read_text()) if args.keep_whole else None
+    for name in ("killed",) if earlier else ("whole", "killed"):
         case = args.work / name
         shutil.rmtree(case, ignore_errors=True)
         case.mkdir(parents=True)
         shutil.copyfile(args.run_dir / "database.db", case / "database.db")
-    result["whole"] = _map(args, args.work / "whole", None)
+    result["whole"] = earlier["whole"] if earlier else _map(args, args.work / "whole", None)
     result["killed"] = _map(args, args.work / "killed", args.kill_after_s)
     ckpt = args.work / "killed" / ".sara" / "map-checkpoint" / "checkpoint.json"
     result["checkpoint_at_kill"] = json.loads(ckpt.read_text()) if ckpt.exists() else None
