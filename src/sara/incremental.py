@@ -214,8 +214,12 @@ def _update_copies(conf: ExtractConfig, images: ImageSet, out_dir: Path, change:
                                         existing_camera_id=existing)
         failed = not_extracted(come, colmap.images_with_keypoints(db), todo)
     else:
-        colmap.import_images(db, images.root, [n for n in come.names if n not in colmap.database_images(db)],
-                             **_import_options(db, images, come.names, conf, info))
+        to_import = [n for n in come.names if n not in colmap.database_images(db)]
+        if to_import:  # an empty list would make pycolmap import every image of the folder
+            camera_mode, existing = _camera_of_new(db, images, to_import, info)
+            colmap.import_images(db, images.root, to_import, camera_mode=camera_mode, camera_model=conf.camera_model,
+                                 camera_params=conf.camera_params, existing_camera_id=existing,
+                                 default_focal_length_factor=conf.default_focal_length_factor)
         added_h5 = work / "added.h5"
         if not added_h5.exists():  # else extracted before a kill: `extract_to_h5` renames it when complete
             extract.extract_to_h5(backend, conf, come, added_h5, executor, progress)
@@ -238,14 +242,6 @@ def _camera_of_new(db: Path, images: ImageSet, names: list[str], info: dict[str,
         return "single", shared.camera_id
     # pycolmap makes a camera per image in `per_image` mode even when given the shared one
     return ("per_folder" if mode == "per_folder" else "per_image"), None
-
-
-def _import_options(db: Path, images: ImageSet, names: list[str], conf: ExtractConfig,
-                    info: dict[str, Any]) -> dict[str, Any]:
-    """`colmap.import_images`' options for the new images (cameras as `_camera_of_new`)."""
-    camera_mode, existing = _camera_of_new(db, images, names, info)
-    return {"camera_mode": camera_mode, "camera_model": conf.camera_model, "camera_params": conf.camera_params,
-            "default_focal_length_factor": conf.default_focal_length_factor, "existing_camera_id": existing}
 
 
 def _write_features(out_dir: Path, conf: ExtractConfig, images: ImageSet, change: Change,
