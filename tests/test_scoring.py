@@ -474,3 +474,43 @@ def test_shards_give_each_worker_several_but_not_tiny_ones():
     assert shard_pairs(100_000, 2) == SHARD_PAIRS
     assert shard_pairs(120, 2) == MIN_SHARD_PAIRS  # fewer than two shards: scored in-process
     assert shard_pairs(10, 2, most=4) == 4  # a smaller maximum is kept (the tests' small shards)
+
+
+def test_scores_kept_in_a_journal_are_not_made_again_and_equal_new_ones(tmp_path, monkeypatch):
+    """Stopped after two shards of one pair, scoring again with the journal scores only the other
+    two pairs and gives the scores of an uninterrupted run; other settings or inputs score anew."""
+    from sara.execute import SerialExecutor
+    from sara.scoring import ScoreJournal
+
+    features_path, db_path = write_synthetic_inputs(tmp_path)
+    pairs = [("a.png", "b.png"), ("a.png", "c.png"), ("a.png", "d.png"), ("b.png", "c.png")]
+    whole = score_pairs(pairs, features_path, db_path, ScoreConfig(), progress=False)
+    real, calls, stop_at = scorer_module._score_shard, [], [3]
+
+    def stopping(shard):
+        calls.append(len(shard.index0))
+        if len(calls) in stop_at:
+            stop_at.clear()
+            raise KeyboardInterrupt
+        return real(shard)
+
+    monkeypatch.setattr(scorer_module, "_score_shard", stopping)
+
+    def score(conf=None, key="inputs-1"):
+        journal = ScoreJournal(tmp_path / "journal", key).open()
+        return score_pairs(pairs, features_path, db_path, conf or ScoreConfig(), executor=SerialExecutor(),
+                           shard_size=1, journal=journal, progress=False)
+
+    with pytest.raises(KeyboardInterrupt):
+        score()
+    calls.clear()
+    again = score()
+    assert calls == [1, 1]
+    for field in dataclasses.fields(PairScores):
+        np.testing.assert_array_equal(getattr(again, field.name), getattr(whole, field.name))
+    calls.clear()
+    score(ScoreConfig(num_matches=40))
+    assert len(calls) == 4
+    calls.clear()
+    score(key="inputs-2")  # the journal of other features is cleared
+    assert len(calls) == 4 and len(list((tmp_path / "journal").glob("*.json"))) == 4

@@ -147,3 +147,39 @@ def test_aliased_names_left_behind_are_given_back(spaced_folder, tmp_path, run_c
         assert_ok(run_cli(*command, "-q"))
         assert not aliased_in(out / "database.db")
     assert set(SPACED_NAMES) <= set(registered(out))
+
+
+def test_a_selection_stopped_while_scoring_scores_only_the_pairs_it_had_not(finished_run, images, finished_run_template,
+                                                                          run_cli, monkeypatch):
+    """The scores of each shard are kept as it comes back (`.sara/score-journal/`): the same command
+    after a stop scores only the other pairs, selects what an uninterrupted run selects, and the
+    journal goes when the stage ends."""
+    import sara.scoring.scorer as scorer
+
+    (finished_run / "pairs.txt").unlink()
+    command = ("pairs", images, finished_run, "-q", "--executor", "serial", "-s", "execute.shard_size=8")
+    real, scored = scorer._score_shard, []
+
+    def stopping(shard):
+        if len(scored) == 2:
+            raise KeyboardInterrupt
+        scored.append(len(shard.index0))
+        return real(shard)
+
+    monkeypatch.setattr(scorer, "_score_shard", stopping)
+    assert run_cli(*command).code == 130
+    journal = finished_run / ".sara" / "score-journal"
+    assert len(list(journal.glob("*.json"))) == 2 and not (finished_run / "pairs.txt").exists()
+    kept = sum(scored)
+    scored.clear()
+    monkeypatch.setattr(scorer, "_score_shard", lambda shard: scored.append(len(shard.index0)) or real(shard))
+    result = run_cli(*command)
+    assert_ok(result)
+    candidates = len((finished_run / "scores.csv").read_text().splitlines()) - 1
+    assert kept == 16 and sum(scored) == candidates - kept
+    uninterrupted = Path(shutil.copytree(finished_run_template, finished_run.with_name("whole")))
+    (uninterrupted / "pairs.txt").unlink()
+    assert_ok(run_cli("pairs", images, uninterrupted, *command[3:]))
+    for name in ("pairs.txt", "scores.csv"):
+        assert (finished_run / name).read_bytes() == (uninterrupted / name).read_bytes()
+    assert not journal.exists()

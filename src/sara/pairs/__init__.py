@@ -40,6 +40,9 @@ class PairContext:
     #: the round asked for is the one after the repairs used up `rounds.repair_rounds`: a source
     #: should give pairs its `refine` takes in (set by the pipeline for that call)
     last_round: bool = False
+    #: where the pairs stage keeps the scores made so far (a `sara.scoring.ScoreJournal`): a source
+    #: that scores pairs passes it to `score_pairs`, and a selection stopped part-way keeps them
+    score_journal: Any = None
 
 
 @dataclass

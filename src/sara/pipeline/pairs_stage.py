@@ -22,6 +22,7 @@ from ..io import DamagedOutputError, NoResultError, file_digest, fingerprint, re
 from ..io.images import ImageSet
 from ..io.pairs import read_pairs, write_pairs
 from ..pairs import SOURCES, Extension, PairContext, PairSource, get_source
+from ..scoring import ScoreJournal
 from . import rounds
 
 logger = logging.getLogger(__name__)
@@ -29,6 +30,9 @@ logger = logging.getLogger(__name__)
 STAGE = "pairs"
 PAIRS_NAME = rounds.PAIRS_NAME
 STAGING = "pairs.next"
+#: the scores made so far while a selection runs (`sara.scoring.ScoreJournal`): a selection stopped
+#: part-way scores only the pairs it had not finished when run again; removed when the stage ends
+SCORE_JOURNAL = "score-journal"
 #: outputs of the pairs stage whose digests the record keeps (caches check themselves)
 _TRACKED_PAIR_FILES = (PAIRS_NAME, "scores.csv")
 
@@ -76,11 +80,12 @@ def current_key(conf: PipelineConfig, out_dir: Path) -> str:
 
 
 def pair_context(conf: PipelineConfig, images: ImageSet, features_path: Path, out_dir: Path, *,
-                 executor: Executor | None = None, progress: bool = True, work_dir: Path | None = None) -> PairContext:
+                 executor: Executor | None = None, progress: bool = True, work_dir: Path | None = None,
+                 score_journal: ScoreJournal | None = None) -> PairContext:
     focal_estimate = records.done_info(out_dir, extract.STAGE).get("focal")  # the extract stage's result
     return PairContext(names=images.names, images_root=images.root, features_path=features_path,
                        db_path=out_dir / extract.DB_NAME, out_dir=work_dir or out_dir, conf=conf, progress=progress,
-                       executor=executor, focal_estimate=focal_estimate)
+                       executor=executor, focal_estimate=focal_estimate, score_journal=score_journal)
 
 
 def run(conf: PipelineConfig, images: ImageSet, features_path: Path, out_dir: Path, *,
@@ -96,6 +101,9 @@ def run(conf: PipelineConfig, images: ImageSet, features_path: Path, out_dir: Pa
     tic = time.perf_counter()
     staging = out_dir / ".sara" / STAGING
     shutil.rmtree(staging, ignore_errors=True)
+    journal = ScoreJournal(out_dir / ".sara" / SCORE_JOURNAL, key)
+    if overwrite:
+        journal.remove()
     try:
         if source_file is not None:
             pairs = read_pairs(source_file, known_names=images.names)
@@ -105,11 +113,12 @@ def run(conf: PipelineConfig, images: ImageSet, features_path: Path, out_dir: Pa
             source = get_source(method)
             _seed_caches(source, out_dir, staging)
             ctx = pair_context(conf, images, features_path, out_dir, executor=executor, progress=progress,
-                               work_dir=staging)
+                               work_dir=staging, score_journal=journal.open())
             extension = _extension(source, out_dir)
             result = source.extend(ctx, extension) if extension is not None else source(ctx)
             pairs, info, why_empty = result.pairs, {**result.info, "timings_s": result.timings_s}, result.why_empty
         if not pairs:
+            journal.remove()
             raise NoResultError(_no_pairs_reason(method, source_file, why_empty, len(images.names), out_dir))
         produced = _swap_in_pair_files(staging, out_dir, key)
     finally:
@@ -121,6 +130,7 @@ def run(conf: PipelineConfig, images: ImageSet, features_path: Path, out_dir: Pa
                 num_exhaustive_pairs=exhaustive, fraction_of_exhaustive=len(pairs) / max(1, exhaustive))
     outputs = {name: file_digest(out_dir / name) for name in [PAIRS_NAME, *produced] if name in _TRACKED_PAIR_FILES}
     records.mark_done(out_dir, STAGE, key, info, outputs=outputs)
+    journal.remove()
     return pairs_path
 
 

@@ -39,7 +39,7 @@ from collections import OrderedDict
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from threadpoolctl import threadpool_limits
@@ -52,6 +52,9 @@ from ..execute import Executor, SerialExecutor
 from ..io.h5 import FeatureCache, Features
 from ..io.scores import PairScores
 from .twoview import estimate_relative_pose, inlier_parallax_deg, sampson_errors
+
+if TYPE_CHECKING:
+    from .journal import ScoreJournal
 
 logger = logging.getLogger(__name__)
 
@@ -360,6 +363,7 @@ def score_pairs(
     work_dir: Path | None = None,
     progress: bool = True,
     seed: int = 0,
+    journal: ScoreJournal | None = None,
 ) -> PairScores:
     """Score candidate pairs, in shards over `executor` (default: this process).
 
@@ -378,6 +382,8 @@ def score_pairs(
         work_dir: where the view store goes (its own sub-folder, removed afterwards).
         progress: show progress bars.
         seed: RANSAC seed, the same for every pair: a pair's score does not depend on the others.
+        journal: where each shard's scores are kept as it comes back; pairs found there are not
+            scored again (a selection stopped part-way, `scoring.journal`).
     Returns:
         The scores, in the order of ``pairs``.
     """
@@ -385,32 +391,41 @@ def score_pairs(
     same = [a for a, b in pairs if a == b]
     if same:
         raise ValueError(f"a pair of an image with itself: {same[0]!r}")
-    names = sorted({n for p in pairs for n in p})
-    row = {n: i for i, n in enumerate(names)}
-    index0 = np.array([row[a] for a, _ in pairs], dtype=np.int64)
-    index1 = np.array([row[b] for _, b in pairs], dtype=np.int64)
     if shard_size < 1:
         raise ValueError(f"execute.shard_size must be at least 1, got {shard_size}")
+    kept = journal.scored(conf, seed) if journal is not None else {}
+    todo = [p for p in pairs if p not in kept]
+    if len(todo) < len(pairs):
+        logger.info("score: %d of the %d pairs were scored before the run stopped; scoring the other %d",
+                    len(pairs) - len(todo), len(pairs), len(todo))
+    names = sorted({n for p in todo for n in p})
+    row = {n: i for i, n in enumerate(names)}
+    index0 = np.array([row[a] for a, _ in todo], dtype=np.int64)
+    index1 = np.array([row[b] for _, b in todo], dtype=np.int64)
     if executor is not None:
-        shard_size = shard_pairs(len(pairs), executor.workers, shard_size)
-    if executor is None or len(pairs) < 2 * shard_size:
+        shard_size = shard_pairs(len(todo), executor.workers, shard_size)
+    if executor is None or len(todo) < 2 * shard_size:
         executor = SerialExecutor()
     if work_dir is not None:
         Path(work_dir).mkdir(parents=True, exist_ok=True)
+    start = time.perf_counter()
+    results: list[PairScore] = []
     with tempfile.TemporaryDirectory(prefix="score-views-", dir=work_dir) as tmp:
         store = ViewStore.write(Path(tmp), names, features_path, db_path, conf.num_keypoints, progress=progress)
         start = time.perf_counter()
         shards = [_Shard(str(store.folder), index0[k:k + shard_size], index1[k:k + shard_size], conf, seed)
-                  for k in range(0, len(pairs), shard_size)]
-        results: list[PairScore] = []
-        with tqdm(total=len(pairs), desc=f"score pairs ({executor.workers} worker(s))", unit="pair",
+                  for k in range(0, len(todo), shard_size)]
+        with tqdm(total=len(todo), desc=f"score pairs ({executor.workers} worker(s))", unit="pair",
                   disable=not progress) as bar:
             for part in executor.map(_score_shard, shards):
+                if journal is not None:
+                    journal.add(conf, seed, todo[len(results):len(results) + len(part)], part)
                 results += part
                 bar.update(len(part))
         _OPEN_STORES.clear()
         del store
-    scores = PairScores.from_scores(pairs, results)
+    fresh = iter(results)
+    scores = PairScores.from_scores(pairs, [kept[p] if p in kept else next(fresh) for p in pairs])
     _log_summary(scores, time.perf_counter() - start)
     return scores
 

@@ -158,7 +158,8 @@ def _score(ctx: PairContext, candidates: list[Pair], score_conf: Any = None, *,
     return scoring.score_pairs(candidates, ctx.features_path, ctx.db_path, score_conf or conf.score,
                                executor=ctx.executor,
                                shard_size=conf.execute.shard_size, work_dir=ctx.out_dir / ".sara",
-                               progress=ctx.progress if progress is None else progress, seed=conf.seed)
+                               progress=ctx.progress if progress is None else progress, seed=conf.seed,
+                               journal=ctx.score_journal)
 
 
 def _score_or_reuse(ctx: PairContext, candidates: list[Pair],
