@@ -1,0 +1,93 @@
+"""A pair selection killed part-way and run again, against the same selection uninterrupted.
+
+    python lab/scripts/pairs_resume.py WORK --size 1000 --kill-at 0.6
+
+Makes (or reuses) the synthetic world of `scale_e2e.py` in WORK/world-N, then runs SARA's pairs
+stage (`sara.pipeline.select_pairs`, this release's defaults) on two fresh copies of its run folder,
+each call in a process of its own: `whole` uninterrupted; `killed` killed with SIGKILL (nothing
+cleans up) after --kill-at times the uninterrupted wall time, then the same call again, which finds
+the scores kept in `.sara/score-journal/`. Writes WORK/pairs_resume.json: wall times, the journal's
+files and pairs at the kill, the pairs the second call scored, and whether `pairs.txt` and
+`scores.csv` are byte-identical to the uninterrupted run's.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import re
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).parent))
+
+
+def _child(world: Path, run: Path) -> None:
+    import dataclasses
+    import logging
+
+    from sara.bench.world import image_set
+    from sara.config import make_config
+    from sara.execute import make_executor
+    from sara.pipeline import select_pairs
+
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
+    conf = make_config(overrides={"pairs.method": "sara"})
+    images = dataclasses.replace(image_set(world), root=run / "images")
+    executor = make_executor(conf.execute.executor, conf.execute.workers, conf.execute.ray_address)
+    select_pairs(conf, images, run / "features-sift.h5", run, executor=executor, progress=False)
+    executor.close()
+
+
+def _select(world: Path, run: Path, kill_after_s: float | None) -> dict:
+    cmd = [sys.executable, __file__, "--child", str(world), str(run)]
+    tic = time.perf_counter()
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=open(run / "log.txt", "a"))
+    try:
+        proc.wait(timeout=kill_after_s)
+    except subprocess.TimeoutExpired:
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+    return {"wall_s": round(time.perf_counter() - tic, 1), "returncode": proc.returncode}
+
+
+def _journal(run: Path) -> dict:
+    files = sorted((run / ".sara" / "score-journal").glob("*.json"))
+    return {"files": len(files), "pairs": sum(len(json.loads(p.read_text())) for p in files)}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    if len(sys.argv) > 1 and sys.argv[1] == "--child":
+        _child(Path(sys.argv[2]), Path(sys.argv[3]))
+        return
+    ap.add_argument("work", type=Path)
+    ap.add_argument("--size", type=int, default=1000)
+    ap.add_argument("--kill-at", type=float, default=0.6, help="share of the uninterrupted wall time")
+    args = ap.parse_args()
+    from scale_e2e import ensure_world, prepare_run_dir
+
+    world = ensure_world(args.work, args.size)
+    result: dict = {"N": args.size}
+    runs = {name: args.work / f"pairs-{args.size}-{name}" for name in ("whole", "killed")}
+    for run in runs.values():
+        prepare_run_dir(world, run)
+    result["whole"] = _select(world, runs["whole"], None)
+    kill_after = args.kill_at * result["whole"]["wall_s"]
+    result["killed"] = {"kill_after_s": round(kill_after, 1), **_select(world, runs["killed"], kill_after),
+                        "journal_at_kill": _journal(runs["killed"])}
+    result["resumed"] = _select(world, runs["killed"], None)
+    log = (runs["killed"] / "log.txt").read_text()
+    result["resumed"]["kept_lines"] = re.findall(r"score: (\d+) of the (\d+) pairs were scored before", log)
+    result["identical"] = {name: (runs["whole"] / name).read_bytes() == (runs["killed"] / name).read_bytes()
+                           for name in ("pairs.txt", "scores.csv")}
+    result["journal_left"] = (runs["killed"] / ".sara" / "score-journal").exists()
+    (args.work / "pairs_resume.json").write_text(json.dumps(result, indent=1))
+    print(json.dumps(result, indent=1))
+
+
+if __name__ == "__main__":
+    main()
