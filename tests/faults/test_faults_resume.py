@@ -151,13 +151,16 @@ def test_aliased_names_left_behind_are_given_back(spaced_folder, tmp_path, run_c
 
 def test_a_selection_stopped_while_scoring_scores_only_the_pairs_it_had_not(finished_run, images, finished_run_template,
                                                                           run_cli, monkeypatch):
-    """The scores of each shard are kept as it comes back (`.sara/score-journal/`): the same command
-    after a stop scores only the other pairs, selects what an uninterrupted run selects, and the
-    journal goes when the stage ends."""
+    """The scores of each shard are kept as it comes back (`.sara/score-journal/`), and the global
+    descriptors made before the stop with them: the same command scores only the other pairs,
+    describes no image again, selects what an uninterrupted run selects, and the journal goes when
+    the stage ends."""
     import sara.scoring.scorer as scorer
+    from sara.retrieval.vlad import VladDescriptor
 
     (finished_run / "pairs.txt").unlink()
-    command = ("pairs", images, finished_run, "-q", "--executor", "serial", "-s", "execute.shard_size=8")
+    command = ("pairs", images, finished_run, "-q", "--executor", "serial", "-s", "execute.shard_size=8", "-s",
+               "retrieval.num_neighbors=5")
     real, scored = scorer._score_shard, []
 
     def stopping(shard):
@@ -170,11 +173,16 @@ def test_a_selection_stopped_while_scoring_scores_only_the_pairs_it_had_not(fini
     assert run_cli(*command).code == 130
     journal = finished_run / ".sara" / "score-journal"
     assert len(list(journal.glob("*.json"))) == 2 and not (finished_run / "pairs.txt").exists()
+    assert [p.name for p in journal.glob("global-*.h5")] == ["global-vlad.h5"]
     kept = sum(scored)
     scored.clear()
     monkeypatch.setattr(scorer, "_score_shard", lambda shard: scored.append(len(shard.index0)) or real(shard))
+    described = []
+    compute = VladDescriptor.compute
+    monkeypatch.setattr(VladDescriptor, "compute", lambda self, *a, **k: described.append(1) or compute(self, *a, **k))
     result = run_cli(*command)
     assert_ok(result)
+    assert not described
     candidates = len((finished_run / "scores.csv").read_text().splitlines()) - 1
     assert kept == 16 and sum(scored) == candidates - kept
     uninterrupted = Path(shutil.copytree(finished_run_template, finished_run.with_name("whole")))

@@ -100,20 +100,22 @@ def run(conf: PipelineConfig, images: ImageSet, features_path: Path, out_dir: Pa
         return pairs_path
     tic = time.perf_counter()
     staging = out_dir / ".sara" / STAGING
-    shutil.rmtree(staging, ignore_errors=True)
     journal = ScoreJournal(out_dir / ".sara" / SCORE_JOURNAL, key)
     if overwrite:
         journal.remove()
+    source = get_source(method) if source_file is None else None
+    if source is not None:
+        _keep_caches(source, staging, journal.open().folder)  # those a killed selection left
+    shutil.rmtree(staging, ignore_errors=True)
     try:
-        if source_file is not None:
+        if source is None:
             pairs = read_pairs(source_file, known_names=images.names)
             info: dict[str, Any] = {"source": str(source_file)}
             why_empty = ""
         else:
-            source = get_source(method)
-            _seed_caches(source, out_dir, staging)
+            _seed_caches(source, (out_dir, journal.folder), staging)
             ctx = pair_context(conf, images, features_path, out_dir, executor=executor, progress=progress,
-                               work_dir=staging, score_journal=journal.open())
+                               work_dir=staging, score_journal=journal)
             extension = _extension(source, out_dir)
             result = source.extend(ctx, extension) if extension is not None else source(ctx)
             pairs, info, why_empty = result.pairs, {**result.info, "timings_s": result.timings_s}, result.why_empty
@@ -122,6 +124,8 @@ def run(conf: PipelineConfig, images: ImageSet, features_path: Path, out_dir: Pa
             raise NoResultError(_no_pairs_reason(method, source_file, why_empty, len(images.names), out_dir))
         produced = _swap_in_pair_files(staging, out_dir, key)
     finally:
+        if source is not None and journal.folder.is_dir():  # stopped: its caches are kept
+            _keep_caches(source, staging, journal.folder)
         shutil.rmtree(staging, ignore_errors=True)
     write_pairs(pairs_path, pairs)
     n = len(images.names)
@@ -144,13 +148,24 @@ def _extension(source: PairSource, out_dir: Path) -> Extension | None:
     return Extension(kept, new_names, scores_path) if kept or scores_path is not None else None
 
 
-def _seed_caches(source: PairSource, out_dir: Path, staging: Path) -> None:
-    """Copy the source's caches of earlier selections into the staging folder (it reuses them)."""
+def _seed_caches(source: PairSource, folders: tuple[Path, ...], staging: Path) -> None:
+    """Copy the source's caches of earlier selections into the staging folder (it reuses them): from
+    each of `folders` in turn, a later one's file replacing an earlier one's of the same name."""
     staging.mkdir(parents=True, exist_ok=True)
-    for pattern in source.caches:
-        for path in out_dir.glob(pattern):
+    for folder in folders:
+        for pattern in source.caches:
+            for path in folder.glob(pattern):
+                if path.is_file():
+                    shutil.copy2(path, staging / path.name)
+
+
+def _keep_caches(source: PairSource, staging: Path, journal: Path) -> None:
+    """Move the caches a stopped selection left in `staging` into the score journal's folder: the
+    selection run again reuses them (each cache checks its own inputs, as `retrieval.run` does)."""
+    for pattern in source.caches if staging.is_dir() else ():
+        for path in staging.glob(pattern):
             if path.is_file():
-                shutil.copy2(path, staging / path.name)
+                os.replace(path, journal / path.name)
 
 
 def _swap_in_pair_files(staging: Path, out_dir: Path, key: str) -> list[str]:
