@@ -408,7 +408,6 @@ def score_pairs(
         executor = SerialExecutor()
     if work_dir is not None:
         Path(work_dir).mkdir(parents=True, exist_ok=True)
-    start = time.perf_counter()
     results: list[PairScore] = []
     with tempfile.TemporaryDirectory(prefix="score-views-", dir=work_dir) as tmp:
         store = ViewStore.write(Path(tmp), names, features_path, db_path, conf.num_keypoints, progress=progress)
@@ -426,17 +425,18 @@ def score_pairs(
         del store
     fresh = iter(results)
     scores = PairScores.from_scores(pairs, [kept[p] if p in kept else next(fresh) for p in pairs])
-    _log_summary(scores, time.perf_counter() - start)
+    _log_summary(scores, len(todo), time.perf_counter() - start)
     return scores
 
 
-def _log_summary(scores: PairScores, elapsed_s: float) -> None:
+def _log_summary(scores: PairScores, num_scored: int, elapsed_s: float) -> None:
     count = len(scores)
     if count == 0:
         logger.info("score: no pairs")
         return
     rejected = {r: scores.reason.count(r) for r in REASONS if r in scores.reason}
     logger.info(
-        "score: %d pairs in %.1f s (%.2f ms per pair); %d accepted, rejected: %s",
-        count, elapsed_s, 1e3 * elapsed_s / count, int(scores.accepted.sum()), rejected or "none",
+        "score: %d pairs (%d scored in %.1f s, %.2f ms per pair); %d accepted, rejected: %s",
+        count, num_scored, elapsed_s, 1e3 * elapsed_s / max(1, num_scored), int(scores.accepted.sum()),
+        rejected or "none",
     )
