@@ -75,7 +75,7 @@ def test_the_repair_scores_again_with_the_ratio_test(monkeypatch, tmp_path: Path
 
     monkeypatch.setattr(scoring, "score_pairs", fake_score_pairs)
     ctx = SimpleNamespace(conf=make_config("sift-offline"), features_path=tmp_path / "f.h5", db_path=tmp_path / "d.db",
-                          executor=None, out_dir=tmp_path, progress=False)
+                          executor=None, out_dir=tmp_path, progress=False, score_journal=None)
     assert sara_rounds._ratio_rescore(ctx)([("a", "b"), ("a", "c")]) == {("a", "b"): 7, ("a", "c"): 14}
     assert seen["ratio"] == 0.8 and ctx.conf.score.max_descriptor_ratio == 1.0  # the selection's scores: untouched
     ctx.conf = make_config("sift-offline", {"rounds.repair_descriptor_ratio": 1.0})
