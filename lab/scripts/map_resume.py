@@ -39,8 +39,14 @@ def _child(db: Path, images: Path, out: Path, minutes: float) -> None:
 def _map(args: argparse.Namespace, case: Path, kill_after_s: float | None) -> dict:
     cmd = [sys.executable, __file__, "--child", str(case / "database.db"), str(args.run_dir / "images"), str(case),
            str(args.checkpoint_minutes)]
+    return run_child(cmd, case / "log.txt", kill_after_s)
+
+
+def run_child(cmd: list[str], log: Path, kill_after_s: float | None) -> dict:
+    """Run `cmd`, its stderr appended to `log`; SIGKILL it after `kill_after_s` (None: let it end).
+    Returns its wall seconds and return code."""
     tic = time.perf_counter()
-    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=open(case / "log.txt", "a"))
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=open(log, "a"))
     try:
         proc.wait(timeout=kill_after_s)
     except subprocess.TimeoutExpired:

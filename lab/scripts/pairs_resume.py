@@ -16,10 +16,7 @@ from __future__ import annotations
 import argparse
 import json
 import re
-import signal
-import subprocess
 import sys
-import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).parent))
@@ -43,15 +40,9 @@ def _child(world: Path, run: Path) -> None:
 
 
 def _select(world: Path, run: Path, kill_after_s: float | None) -> dict:
-    cmd = [sys.executable, __file__, "--child", str(world), str(run)]
-    tic = time.perf_counter()
-    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=open(run / "log.txt", "a"))
-    try:
-        proc.wait(timeout=kill_after_s)
-    except subprocess.TimeoutExpired:
-        proc.send_signal(signal.SIGKILL)
-        proc.wait()
-    return {"wall_s": round(time.perf_counter() - tic, 1), "returncode": proc.returncode}
+    from map_resume import run_child
+
+    return run_child([sys.executable, __file__, "--child", str(world), str(run)], run / "log.txt", kill_after_s)
 
 
 def _journal(run: Path) -> dict:
