@@ -153,12 +153,14 @@ def test_a_selection_stopped_while_scoring_scores_only_the_pairs_it_had_not(fini
                                                                           run_cli, monkeypatch):
     """The scores of each shard are kept as it comes back (`.sara/score-journal/`), and the global
     descriptors made before the stop with them: the same command scores only the other pairs,
-    describes no image again, selects what an uninterrupted run selects, and the journal goes when
-    the stage ends."""
+    describes no image again and selects what an uninterrupted run selects; once the stage ends
+    the journal keeps the scores and hands the descriptors to the output folder."""
     import sara.scoring.scorer as scorer
     from sara.retrieval.vlad import VladDescriptor
 
     (finished_run / "pairs.txt").unlink()
+    journal = finished_run / ".sara" / "score-journal"
+    shutil.rmtree(journal)  # the finished run's scores: this selection starts with none
     command = ("pairs", images, finished_run, "-q", "--executor", "serial", "-s", "execute.shard_size=8", "-s",
                "retrieval.num_neighbors=5")
     real, scored = scorer._score_shard, []
@@ -171,7 +173,6 @@ def test_a_selection_stopped_while_scoring_scores_only_the_pairs_it_had_not(fini
 
     monkeypatch.setattr(scorer, "_score_shard", stopping)
     assert run_cli(*command).code == 130
-    journal = finished_run / ".sara" / "score-journal"
     assert len(list(journal.glob("*.json"))) == 2 and not (finished_run / "pairs.txt").exists()
     assert [p.name for p in journal.glob("global-*.h5")] == ["global-vlad.h5"]
     kept = sum(scored)
@@ -187,7 +188,36 @@ def test_a_selection_stopped_while_scoring_scores_only_the_pairs_it_had_not(fini
     assert kept == 16 and sum(scored) == candidates - kept
     uninterrupted = Path(shutil.copytree(finished_run_template, finished_run.with_name("whole")))
     (uninterrupted / "pairs.txt").unlink()
+    shutil.rmtree(uninterrupted / ".sara" / "score-journal")
     assert_ok(run_cli("pairs", images, uninterrupted, *command[3:]))
     for name in ("pairs.txt", "scores.csv"):
         assert (finished_run / name).read_bytes() == (uninterrupted / name).read_bytes()
-    assert not journal.exists()
+    assert len(list(journal.glob("*.json"))) > 2 and not list(journal.glob("global-*.h5"))
+    assert (finished_run / "global-vlad.h5").is_file()
+
+
+def test_a_selection_made_again_with_other_graph_settings_scores_no_pair_twice(
+        finished_run, images, finished_run_template, run_cli, monkeypatch):
+    """The scores stay with the features: selecting again with other graph or budget settings
+    scores only candidates never scored, and selects what a folder without those scores selects;
+    other features (`--overwrite` too) score anew."""
+    import sara.scoring.scorer as scorer
+
+    journal = finished_run / ".sara" / "score-journal"
+    assert list(journal.glob("*.json"))  # the finished run's
+    before = (finished_run / "pairs.txt").read_bytes()
+    real, scored = scorer._score_shard, []
+    monkeypatch.setattr(scorer, "_score_shard", lambda shard: scored.append(len(shard.index0)) or real(shard))
+    changed = ("-q", "-s", "graph.use_loops=false", "-s", "budget.max_pairs_per_image=2")
+    assert_ok(run_cli("pairs", images, finished_run, *changed))
+    assert sum(scored) == 0 and (finished_run / "pairs.txt").read_bytes() != before
+    fresh = Path(shutil.copytree(finished_run_template, finished_run.with_name("fresh")))
+    shutil.rmtree(fresh / ".sara" / "score-journal")
+    assert_ok(run_cli("pairs", images, fresh, *changed))
+    from_nothing = sum(scored)
+    assert from_nothing >= len((fresh / "scores.csv").read_text().splitlines()) - 1 > 0
+    for name in ("pairs.txt", "scores.csv"):
+        assert (finished_run / name).read_bytes() == (fresh / name).read_bytes()
+    scored.clear()
+    assert_ok(run_cli("pairs", images, finished_run, "--overwrite", *changed))
+    assert sum(scored) == from_nothing

@@ -30,8 +30,9 @@ logger = logging.getLogger(__name__)
 STAGE = "pairs"
 PAIRS_NAME = rounds.PAIRS_NAME
 STAGING = "pairs.next"
-#: the scores made so far while a selection runs (`sara.scoring.ScoreJournal`): a selection stopped
-#: part-way scores only the pairs it had not finished when run again; removed when the stage ends
+#: the candidate pairs' scores (`sara.scoring.ScoreJournal`), written as they come back and kept for
+#: these features: a selection stopped part-way, or run again with other graph, budget or candidate
+#: settings, scores only the pairs it finds no score of; cleared with other features and on overwrite
 SCORE_JOURNAL = "score-journal"
 #: outputs of the pairs stage whose digests the record keeps (caches check themselves)
 _TRACKED_PAIR_FILES = (PAIRS_NAME, "scores.csv")
@@ -100,7 +101,7 @@ def run(conf: PipelineConfig, images: ImageSet, features_path: Path, out_dir: Pa
         return pairs_path
     tic = time.perf_counter()
     staging = out_dir / ".sara" / STAGING
-    journal = ScoreJournal(out_dir / ".sara" / SCORE_JOURNAL, key)
+    journal = ScoreJournal(out_dir / ".sara" / SCORE_JOURNAL, _scores_key(out_dir, key))
     if overwrite:
         journal.remove()
     source = get_source(method) if source_file is None else None
@@ -120,7 +121,6 @@ def run(conf: PipelineConfig, images: ImageSet, features_path: Path, out_dir: Pa
             result = source.extend(ctx, extension) if extension is not None else source(ctx)
             pairs, info, why_empty = result.pairs, {**result.info, "timings_s": result.timings_s}, result.why_empty
         if not pairs:
-            journal.remove()
             raise NoResultError(_no_pairs_reason(method, source_file, why_empty, len(images.names), out_dir))
         produced = _swap_in_pair_files(staging, out_dir, key)
     finally:
@@ -134,8 +134,16 @@ def run(conf: PipelineConfig, images: ImageSet, features_path: Path, out_dir: Pa
                 num_exhaustive_pairs=exhaustive, fraction_of_exhaustive=len(pairs) / max(1, exhaustive))
     outputs = {name: file_digest(out_dir / name) for name in [PAIRS_NAME, *produced] if name in _TRACKED_PAIR_FILES}
     records.mark_done(out_dir, STAGE, key, info, outputs=outputs)
-    journal.remove()
+    if source is not None:  # the caches a stopped selection handed on are in the output folder now
+        _drop_caches(source, journal.folder)
     return pairs_path
+
+
+def _scores_key(out_dir: Path, pairs_key: str) -> str:
+    """What a candidate's score depends on besides the score settings and the seed (which name the
+    journal's files): the features and cameras, i.e. the extract stage's key; where no extract stage
+    recorded them (features made elsewhere), the pairs stage's own key."""
+    return (records.read_record(out_dir, extract.STAGE) or {}).get("key") or pairs_key
 
 
 def _extension(source: PairSource, out_dir: Path) -> Extension | None:
@@ -166,6 +174,12 @@ def _keep_caches(source: PairSource, staging: Path, journal: Path) -> None:
         for path in staging.glob(pattern):
             if path.is_file():
                 os.replace(path, journal / path.name)
+
+
+def _drop_caches(source: PairSource, journal: Path) -> None:
+    for pattern in source.caches:
+        for path in journal.glob(pattern):
+            path.unlink(missing_ok=True)
 
 
 def _swap_in_pair_files(staging: Path, out_dir: Path, key: str) -> list[str]:

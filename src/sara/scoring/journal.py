@@ -1,13 +1,14 @@
-"""Scores kept on disk while a selection runs, so that a selection stopped part-way scores again
-only the pairs it had not finished.
+"""The scores of candidate pairs kept on disk, so that no selection on the same features scores a
+pair twice.
 
 Scoring is most of the selection at scale (83% of its CPU at 10,000 images, where the selection
 took 9-18 minutes on two cores: lab/notes/SCALE.md), and the pairs stage writes nothing until it
 ends. The journal holds the scores of each shard as it comes back, under the settings and seed that
 made them; a pair's score depends only on its two views, those settings and the seed, so a score
-read back is the score the pair would get again. The journal belongs to one set of inputs (`key`:
-the pairs stage's key, which covers the features and the configuration): opened for other
-inputs it starts empty.
+read back is the score the pair would get again. A selection stopped part-way therefore scores only
+the pairs it had not finished, and one run again with other graph, budget or candidate settings only
+the candidates it had never scored. The journal belongs to one set of views (`key`: the extract
+stage's key, which covers the features and cameras): opened for other views it starts empty.
 """
 
 from __future__ import annotations

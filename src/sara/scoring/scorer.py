@@ -396,8 +396,8 @@ def score_pairs(
     kept = journal.scored(conf, seed) if journal is not None else {}
     todo = [p for p in pairs if p not in kept]
     if len(todo) < len(pairs):
-        logger.info("score: %d of the %d pairs were scored before the run stopped; scoring the other %d",
-                    len(pairs) - len(todo), len(pairs), len(todo))
+        logger.info("score: %d of the %d pairs were scored by an earlier selection on these features (or one "
+                    "that stopped); scoring the other %d", len(pairs) - len(todo), len(pairs), len(todo))
     names = sorted({n for p in todo for n in p})
     row = {n: i for i, n in enumerate(names)}
     index0 = np.array([row[a] for a, _ in todo], dtype=np.int64)
