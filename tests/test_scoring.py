@@ -514,3 +514,22 @@ def test_scores_kept_in_a_journal_are_not_made_again_and_equal_new_ones(tmp_path
     calls.clear()
     score(key="inputs-2")  # the journal of other features is cleared
     assert len(calls) == 4 and len(list((tmp_path / "journal").glob("*.json"))) == 4
+
+
+def test_the_journal_of_features_made_elsewhere_is_keyed_by_the_features_file(tmp_path):
+    """With no extract stage recorded (features brought from elsewhere) the scores belong to the
+    features file as it is: the same file keeps them, a rewritten one does not."""
+    import os
+
+    from sara.pipeline.pairs_stage import _scores_key
+
+    features = tmp_path / "features-sift.h5"
+    features.write_bytes(b"x" * 10)
+    key = _scores_key(tmp_path, features)
+    assert _scores_key(tmp_path, features) == key
+    features.write_bytes(b"y" * 11)
+    assert _scores_key(tmp_path, features) != key
+    stat = features.stat()
+    changed_in_place = _scores_key(tmp_path, features)
+    os.utime(features, ns=(stat.st_atime_ns, stat.st_mtime_ns + 1_000_000))
+    assert _scores_key(tmp_path, features) != changed_in_place

@@ -101,7 +101,7 @@ def run(conf: PipelineConfig, images: ImageSet, features_path: Path, out_dir: Pa
         return pairs_path
     tic = time.perf_counter()
     staging = out_dir / ".sara" / STAGING
-    journal = ScoreJournal(out_dir / ".sara" / SCORE_JOURNAL, _scores_key(out_dir, key))
+    journal = ScoreJournal(out_dir / ".sara" / SCORE_JOURNAL, _scores_key(out_dir, features_path))
     if overwrite:
         journal.remove()
     source = get_source(method) if source_file is None else None
@@ -139,11 +139,18 @@ def run(conf: PipelineConfig, images: ImageSet, features_path: Path, out_dir: Pa
     return pairs_path
 
 
-def _scores_key(out_dir: Path, pairs_key: str) -> str:
+def _scores_key(out_dir: Path, features_path: Path) -> str:
     """What a candidate's score depends on besides the score settings and the seed (which name the
     journal's files): the features and cameras, i.e. the extract stage's key; where no extract stage
-    recorded them (features made elsewhere), the pairs stage's own key."""
-    return (records.read_record(out_dir, extract.STAGE) or {}).get("key") or pairs_key
+    recorded them (features made elsewhere), the features file's name, size and time."""
+    extract_key = (records.read_record(out_dir, extract.STAGE) or {}).get("key")
+    if extract_key:
+        return extract_key
+    try:
+        stat = Path(features_path).stat()
+    except OSError:  # no features: nothing will be scored
+        return fingerprint({"features": str(features_path)})
+    return fingerprint({"features": Path(features_path).name, "size": stat.st_size, "mtime_ns": stat.st_mtime_ns})
 
 
 def _extension(source: PairSource, out_dir: Path) -> Extension | None:
