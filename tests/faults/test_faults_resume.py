@@ -200,7 +200,7 @@ def test_a_selection_made_again_with_other_graph_settings_scores_no_pair_twice(
         finished_run, images, finished_run_template, run_cli, monkeypatch):
     """The scores stay with the features: selecting again with other graph or budget settings
     scores only candidates never scored, and selects what a folder without those scores selects;
-    other features (`--overwrite` too) score anew."""
+    `--overwrite` scores anew (other features clear the journal: test_scoring.py)."""
     import sara.scoring.scorer as scorer
 
     journal = finished_run / ".sara" / "score-journal"
