@@ -94,14 +94,15 @@ def run(conf: PipelineConfig, images: ImageSet, features_path: Path, out_dir: Pa
     """Write `pairs.txt` from the configured source; returns its path."""
     method = conf.pairs.method
     source_file = pair_source_file(method)
-    key = current_key(conf, out_dir)
+    extract_key = (records.read_record(out_dir, extract.STAGE) or {}).get("key", "")
+    key = pairs_key(conf, extract_key, source_file)
     pairs_path = out_dir / PAIRS_NAME
     if not overwrite and records.is_done(out_dir, STAGE, key) and pairs_intact(out_dir, key):
         logger.info("pairs: %s up to date, skipping", pairs_path)
         return pairs_path
     tic = time.perf_counter()
     staging = out_dir / ".sara" / STAGING
-    journal = ScoreJournal(out_dir / ".sara" / SCORE_JOURNAL, _scores_key(out_dir, features_path))
+    journal = ScoreJournal(out_dir / ".sara" / SCORE_JOURNAL, _scores_key(extract_key, features_path))
     if overwrite:
         journal.remove()
     source = get_source(method) if source_file is None else None
@@ -139,11 +140,10 @@ def run(conf: PipelineConfig, images: ImageSet, features_path: Path, out_dir: Pa
     return pairs_path
 
 
-def _scores_key(out_dir: Path, features_path: Path) -> str:
+def _scores_key(extract_key: str, features_path: Path) -> str:
     """What a candidate's score depends on besides the score settings and the seed (which name the
     journal's files): the features and cameras, i.e. the extract stage's key; where no extract stage
     recorded them (features made elsewhere), the features file's name, size and time."""
-    extract_key = (records.read_record(out_dir, extract.STAGE) or {}).get("key")
     if extract_key:
         return extract_key
     try:
