@@ -97,6 +97,20 @@ def test_a_contradicted_first_model_is_mapped_again_and_the_agreeing_one_kept(sc
     assert "5 of the 15 verified pairs between the views of the largest model contradict it" in caplog.text
 
 
+def test_a_large_model_is_contradicted_by_a_count_of_pairs_its_share_would_hide():
+    """A bend contradicts the pairs across its seam, however many pairs the rest of the model holds:
+    20 contradicting pairs call for a remap at any size, fewer only above 0.5% of the pairs."""
+    def check(contradicted: int, checked: int) -> colmap.Agreement:
+        return colmap.Agreement(checked, [(f"a{i}", f"b{i}") for i in range(contradicted)])
+
+    assert mapping.CONTRADICTED_PAIRS == 20 and mapping.CONTRADICTED_SHARE == 0.005
+    assert mapping._contradicted(check(76, 21_795))  # SARA's bent first model at 10,000 images (0.35%)
+    assert mapping._contradicted(check(45, 15_577))  # sequential + loop detection's at 3,000 (0.29%)
+    assert mapping._contradicted(check(20, 100_000)) and not mapping._contradicted(check(19, 100_000))
+    assert mapping._contradicted(check(12, 683))  # a share above 0.5% (dtu-scan24, exhaustive)
+    assert not mapping._contradicted(check(2, 2_023)) and not mapping._contradicted(check(0, 0))
+
+
 def test_an_agreeing_first_model_is_not_mapped_again(scene, tmp_path, monkeypatch):
     rec, db_path = scene
     seeds = mapped_in_turn(monkeypatch, rec)

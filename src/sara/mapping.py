@@ -167,6 +167,13 @@ def _forward_start(conf: MapConfig, db_path: Path, images_root: Path, tmp: Path,
 #: (`colmap.consistency`) is mapped again under another random seed. On the 1,000-image synthetic
 #: street two bent first models had 1.9% and 3.2%, good ones from the same matches none.
 CONTRADICTED_SHARE = 0.005
+#: ... or by at least this many of them, whatever their share. A bend contradicts the pairs that close
+#: the loop across its seam, and their number is set by how long the two passes overlap, not by the
+#: model's size; as a share of all its pairs it shrinks as the model grows: 45 of 15,577 (0.29%)
+#: for sequential + loop detection's bent 3,000-image model, 76 of 21,795 (0.35%) for SARA's at
+#: 10,000 (AUC@1 0.561 against 0.839 within 30 views). Bent models had 37-76; good ones 0-2 and,
+#: where the pairs themselves were wrong (dtu-scan24, exhaustive), 12 (lab/notes/SCALE.md).
+CONTRADICTED_PAIRS = 20
 
 
 #: threads of a mapping done again because the first model was contradicted. With one thread the
@@ -225,7 +232,7 @@ def _agreeing(conf: MapConfig, db_path: Path, images_root: Path, tmp: Path, seed
 
 
 def _contradicted(check: colmap.Agreement) -> bool:
-    return check.share > CONTRADICTED_SHARE
+    return check.share > CONTRADICTED_SHARE or len(check.contradicted) >= CONTRADICTED_PAIRS
 
 
 def _better(new: colmap.MappedModels, new_check: colmap.Agreement, old: colmap.MappedModels,
