@@ -165,3 +165,32 @@ def test_the_stage_record_keeps_the_first_models_check_through_a_continuation(sc
     continued = mapping._first_model_check(colmap.MappedModels({0: rec}), records.read_record(tmp_path / "out", "map"))
     assert continued == {k: first[k] for k in mapping.FIRST_MODEL_KEYS}
     assert mapping._first_model_check(colmap.MappedModels({0: rec}), None) == {}
+
+
+def test_a_contradicted_global_model_is_mapped_again_by_the_incremental_mapper(scene, tmp_path, monkeypatch, caplog):
+    """The global mapper glues stretches of a sparse graph at wrong rotations: when the model's own
+    pairs contradict it, the incremental mapper maps the scene too, and the model they agree with is
+    kept and recorded as the incremental mapper's; a global model they agree with is kept alone."""
+    rec, db_path = scene
+    seeds = mapped_in_turn(monkeypatch, rec)
+    globals_built = [turned(rec, 3, 3.0), rec]
+    monkeypatch.setattr(colmap, "global_mapping", lambda *a, **k: colmap.MappedModels({0: globals_built.pop(0)}))
+    with caplog.at_level("WARNING", logger="sara.mapping"):
+        mapping.run(MapConfig(mapper="global"), db_path, tmp_path, tmp_path / "out", seed=3, progress=False)
+    info = records.done_info(tmp_path / "out", "map")
+    assert seeds == [3] and info["mapper"] == "incremental" and info["first_model_pairs_contradicted"] == 0
+    assert "5 of the 15 verified pairs between the views of the global mapper's largest model contradict it" \
+        in caplog.text
+    recs, _, _ = mapping._map(MapConfig(mapper="global"), db_path, tmp_path, tmp_path / "again", seed=3,
+                              progress=False)
+    assert seeds == [3] and recs.mapper is None and recs.agreement_check.contradicted == []
+
+
+def test_a_contradicted_global_model_is_kept_when_remaps_are_off(scene, tmp_path, monkeypatch):
+    rec, db_path = scene
+    seeds = mapped_in_turn(monkeypatch, rec)
+    monkeypatch.setattr(colmap, "global_mapping", lambda *a, **k: colmap.MappedModels({0: turned(rec, 3, 3.0)}))
+    mapping.run(MapConfig(mapper="global", contradicted_remaps=0), db_path, tmp_path, tmp_path / "out", seed=0,
+                progress=False)
+    info = records.done_info(tmp_path / "out", "map")
+    assert seeds == [] and info["mapper"] == "global" and info["first_model_pairs_contradicted"] == 5

@@ -148,6 +148,19 @@ def test_report_content(sara_run: Path):
     assert more and f"{s.num_inliers[more[0]]} inliers ({s.num_inliers_all[more[0]]} of all matches)" in text
 
 
+def test_the_report_says_when_another_mapper_built_the_model(sara_run: Path):
+    """A global model its pairs contradicted is mapped again by the incremental mapper: the report's
+    Reconstruction section says which mapper built model 0, only when it is not the one asked for."""
+    from sara.report import sections
+
+    data = load_run(sara_run)
+    assert ">mapper</th>" not in sections.reconstruction(data)
+    data.run["config"]["map"]["mapper"] = "global"
+    data.run["stages"]["map"]["mapper"] = "incremental"
+    assert ">mapper</th><td>incremental: the global mapper's model was contradicted by its pairs" \
+        in sections.reconstruction(data)
+
+
 def test_no_run_is_a_clear_error(tmp_path: Path):
     with pytest.raises(FileNotFoundError, match="no sara run"):
         write_report(tmp_path)

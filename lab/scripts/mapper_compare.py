@@ -45,7 +45,9 @@ def measure(src: Path, copy: Path, gt: Path, mapper: str, seed: int) -> dict:
         row["error"] = proc.stderr.strip().splitlines()[-20:]
         return row
     info = json.loads((copy / ".sara" / "map.json").read_text())["info"]
-    row.update(map_s=info["time_s"], component_sizes=info["component_sizes"], num_images=info["num_images"])
+    row.update(map_s=info["time_s"], component_sizes=info["component_sizes"], num_images=info["num_images"],
+               mapper_used=info.get("mapper"), pairs_checked=info.get("first_model_pairs_checked"),
+               pairs_contradicted=info.get("first_model_pairs_contradicted"))
     metrics_path = copy / f"eval-seed{seed}.json"
     ev = _sara("evaluate", str(copy), str(gt), "--json", str(metrics_path), "-q")
     if ev.returncode != 0:

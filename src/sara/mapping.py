@@ -25,13 +25,13 @@ from . import colmap
 from .colmap import refine as colmap_refine
 from .colmap.stepwise import DIRECT_SOLVER_MAX_IMAGES, Checkpoint
 from .config import MapConfig
-from .io import DamagedOutputError, NoResultError, file_digest, fingerprint, records, without_added_later
+from .io import DamagedOutputError, NoResultError, fingerprint, records, without_added_later
+from .model_files import colmap_models, model_digest, recover, swap_in  # noqa: F401 (the stage's model folders)
 
 logger = logging.getLogger(__name__)
 
 STAGE = "map"
 PARTIAL = "sparse.partial"
-OLD = "sparse.old"
 CHECKPOINT = "map-checkpoint"
 
 
@@ -54,6 +54,8 @@ def run(conf: MapConfig, db_path: Path, images_root: Path, out_dir: Path, *, see
             commit()
         return sparse
     previous = records.read_record(out_dir, STAGE)
+    # the incremental mapper continues its own models, and those it built for a contradicted global one
+    extend = input_model is not None and "incremental" in (conf.mapper, mapped_by(previous))
     records.mark_started(out_dir, STAGE, key)
     checkpoint = Checkpoint(out_dir / ".sara" / CHECKPOINT, key, conf.checkpoint_minutes * 60) \
         if conf.checkpoint_minutes > 0 and input_model is None else None
@@ -63,9 +65,10 @@ def run(conf: MapConfig, db_path: Path, images_root: Path, out_dir: Path, *, see
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
     try:
-        if input_model is not None and conf.mapper == "incremental":
+        if extend:
             recs, num_images, elapsed = _extend(conf, db_path, images_root, tmp, seed, progress, input_model,
                                                 min_num_inliers)
+            recs.mapper = "incremental"
         else:
             recs, num_images, elapsed = _map(conf, db_path, images_root, tmp, seed, progress,
                                              min_num_inliers=min_num_inliers, checkpoint=checkpoint)
@@ -85,7 +88,7 @@ def run(conf: MapConfig, db_path: Path, images_root: Path, out_dir: Path, *, see
     swap_in(tmp, sparse)
     info = {"time_s": elapsed, "num_components": len(sizes), "component_sizes": sizes,
             "num_registered": sizes[0], "num_images": num_images, "forward_start": recs.forward_start,
-            "continued": input_model is not None and conf.mapper == "incremental"}
+            "continued": extend, "mapper": recs.mapper or conf.mapper}
     info.update(_first_model_check(recs, previous if info["continued"] else None))
     records.mark_done(out_dir, STAGE, key, info, outputs={"sparse": model_digest(sparse)})
     if checkpoint is not None:
@@ -93,6 +96,11 @@ def run(conf: MapConfig, db_path: Path, images_root: Path, out_dir: Path, *, see
     if len(sizes) > 1:
         logger.warning("map: the scene split into %d models of %s images", len(sizes), sizes)
     return sparse
+
+
+def mapped_by(record: dict[str, Any] | None) -> str | None:
+    """The mapper that built the model of a map stage's record (None for records before it was kept)."""
+    return ((record or {}).get("info") or {}).get("mapper")
 
 
 #: what the record says of the first mapping's check (`_agreeing`); a continued model keeps it
@@ -125,10 +133,31 @@ def _map(conf: MapConfig, db_path: Path, images_root: Path, tmp: Path, seed: int
                                   min_num_inliers)
             recs = _agreeing(conf, db_path, images_root, tmp, seed, progress, num_images, recs, min_num_inliers)
     elif conf.mapper == "global":
-        recs = colmap.global_mapping(db_path, images_root, tmp, seed=seed, num_threads=conf.num_threads)
+        recs = _global(conf, db_path, images_root, tmp, seed, progress, min_num_inliers)
     else:
         raise ValueError(f"unknown mapper {conf.mapper!r}; choose incremental or global")
     return recs, num_images, time.perf_counter() - tic
+
+
+def _global(conf: MapConfig, db_path: Path, images_root: Path, tmp: Path, seed: int, progress: bool,
+            min_num_inliers: int) -> colmap.MappedModels:
+    """COLMAP's global mapper, its largest model checked against its own verified pairs; when they
+    contradict it (`_contradicted`) and `map.contradicted_remaps` allows, the incremental mapper maps
+    the scene too and the better model is kept (`_better`). On a sparse graph the global mapper glues
+    stretches that few pairs join at wrong rotations, where the incremental one splits the scene
+    (200-image synthetic street, SARA's pairs: 126 of 455 pairs off by over 10 degrees, none wrong)."""
+    recs = colmap.global_mapping(db_path, images_root, tmp, seed=seed, num_threads=conf.num_threads)
+    recs.seed, recs.agreement_check = seed, recs.agreement(db_path, min_num_inliers)
+    if not _contradicted(recs.agreement_check) or conf.contradicted_remaps == 0:
+        return recs
+    logger.warning("map: %d of the %d verified pairs between the views of the global mapper's largest model "
+                   "contradict it: mapping with the incremental mapper as well and keeping the model its pairs "
+                   "agree with", len(recs.agreement_check.contradicted), recs.agreement_check.checked)
+    (tmp / "incremental").mkdir()
+    again, _, _ = _map(replace(conf, mapper="incremental"), db_path, images_root, tmp / "incremental", seed,
+                       progress, min_num_inliers=min_num_inliers)
+    again.mapper = "incremental"
+    return again if _better(again, again.agreement_check, recs, recs.agreement_check) else recs
 
 
 #: a first model holding less than this share of the views that verified pairs join is a start
@@ -167,12 +196,9 @@ def _forward_start(conf: MapConfig, db_path: Path, images_root: Path, tmp: Path,
 #: (`colmap.consistency`) is mapped again under another random seed. On the 1,000-image synthetic
 #: street two bent first models had 1.9% and 3.2%, good ones from the same matches none.
 CONTRADICTED_SHARE = 0.005
-#: ... or by at least this many of them, whatever their share. A bend contradicts the pairs that close
-#: the loop across its seam, and their number is set by how long the two passes overlap, not by the
-#: model's size; as a share of all its pairs it shrinks as the model grows: 45 of 15,577 (0.29%)
-#: for sequential + loop detection's bent 3,000-image model, 76 of 21,795 (0.35%) for SARA's at
-#: 10,000 (AUC@1 0.561 against 0.839 within 30 views). Bent models had 37-76; good ones 0-2 and,
-#: where the pairs themselves were wrong (dtu-scan24, exhaustive), 12 (lab/notes/SCALE.md).
+#: ... or by this many, whatever their share: a bend contradicts the pairs that close the loop across
+#: its seam, as many in a large model as in a small one (bent: 37-76 pairs, 45 of 15,577 at 3,000
+#: images, 76 of 21,795 at 10,000; good: 0-2, and 12 wrong pairs on dtu-scan24; lab/notes/SCALE.md)
 CONTRADICTED_PAIRS = 20
 
 
@@ -352,29 +378,6 @@ def no_model_reason(db_path: Path, conf: MapConfig, min_num_inliers: int) -> str
     return f"the global mapper found no model among the {linked}"
 
 
-def swap_in(new: Path, sparse: Path) -> None:
-    """Replace `sparse` by the folder `new`; a run killed in between leaves the old one in
-    `.sara/sparse.old`, which `recover` puts back."""
-    old = new.parent / OLD
-    shutil.rmtree(old, ignore_errors=True)
-    if sparse.exists():
-        sparse.rename(old)
-    new.rename(sparse)
-    shutil.rmtree(old, ignore_errors=True)
-
-
-def recover(out_dir: Path) -> None:
-    """After a run killed while swapping models: put the previous `sparse/` back when the new one
-    never arrived (call it while holding the output folder's lock)."""
-    out_dir = Path(out_dir)
-    old = out_dir / ".sara" / OLD
-    if old.is_dir():
-        if (out_dir / "sparse").exists():
-            shutil.rmtree(old, ignore_errors=True)
-        else:
-            old.rename(out_dir / "sparse")
-
-
 def adopt(out_dir: Path, info: dict[str, Any], *, key: str | None = None) -> None:
     """Make `sparse/` as it is now the map stage's output, although the mapper did not write it (a
     round refined or extended the model of the current matches): a re-run then keeps it instead of
@@ -383,22 +386,6 @@ def adopt(out_dir: Path, info: dict[str, Any], *, key: str | None = None) -> Non
     recorded = records.read_record(out_dir, STAGE) or {}
     records.mark_done(out_dir, STAGE, key if key is not None else recorded.get("key", ""), info,
                       outputs={"sparse": model_digest(Path(out_dir) / "sparse")})
-
-
-def colmap_models(sparse: Path) -> list[Path]:
-    sparse = Path(sparse)
-    if not sparse.is_dir():
-        return []
-    return sorted((p for p in sparse.iterdir() if p.is_dir() and colmap.has_model(p)), key=lambda p: p.name)
-
-
-def model_digest(sparse: Path) -> dict[str, Any]:
-    """Size and hash of every file of every model folder under `sparse/`."""
-    sparse = Path(sparse)
-    if not sparse.is_dir():
-        return {}
-    return {f"{sub.name}/{f.name}": file_digest(f) for sub in sorted(sparse.iterdir()) if sub.is_dir()
-            for f in sorted(sub.iterdir()) if f.is_file()}
 
 
 def _model_intact(out_dir: Path, sparse: Path) -> bool:

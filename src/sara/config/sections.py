@@ -181,11 +181,12 @@ class MapConfig:
         (PnP): smallest inlier ratio (COLMAP's default: 0.25).""")
     num_threads: int = option(-1, threads(), "COLMAP's mapping threads; -1: every core.")
     contradicted_remaps: int = option(2, ints(0), """Incremental mapper: when more than 0.5% of the verified
-        pairs between the first model's views contradict it (their matches lie over 4 px off its epipolar
-        lines: a model bent where the views pass a place twice), map again at most this many times, under
-        the next seed and starting from the view in most contradicting pairs, and keep the model its
-        pairs agree with, else the largest; stop early when a mapping is contradicted by the same pairs as
-        the one before it (the pairs are wrong, not the model). 0: never.""")
+        pairs between the first model's views, or at least 20 of them, contradict it (their matches lie
+        over 4 px off its epipolar lines: a model bent where the views pass a place twice), map again at
+        most this many times, under the next seed and starting from the view in most contradicting pairs,
+        and keep the model its pairs agree with, else the largest; stop early when a mapping is contradicted
+        by the same pairs as the one before it (the pairs are wrong, not the model). Global mapper: a model
+        so contradicted is mapped again by the incremental mapper and the better one kept. 0: never.""")
     ba_global_growth: float = option(0.0, growth(), """Incremental mapper: adjust the whole model each time
         its registered views or points grew by this factor (COLMAP's ba_global_frames_ratio and
         ba_global_points_ratio, 1.1). 0: by size, COLMAP's 1.1 for scenes of fewer than 500 images

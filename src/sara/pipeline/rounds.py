@@ -342,7 +342,8 @@ def _map_again(run: RoundsRun, added: Round, work: Path, done: dict[str, Any]) -
 
     main = out_dir / "sparse" / "0"
     conf = run.conf
-    extend = conf.rounds.extend_model and conf.map.mapper == "incremental" and colmap.has_model(main)
+    mapped_by = mapping.mapped_by(records.read_record(out_dir, mapping.STAGE))
+    extend = conf.rounds.extend_model and "incremental" in (conf.map.mapper, mapped_by) and colmap.has_model(main)
     mapping.run(conf.map, work, run.ctx.images_root, out_dir, seed=conf.seed,
                 upstream_key=fingerprint(match.matches_digest(work)), progress=run.progress,
                 min_num_inliers=conf.match.min_num_inliers, commit=commit, input_model=main if extend else None)

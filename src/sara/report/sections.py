@@ -215,6 +215,9 @@ def reconstruction(data: RunData) -> str:
             ("cameras", ", ".join(f"{v} {esc(k)}" for k, v in cams.items()))]
     if data.agreement is not None:
         rows.append(("verified pairs that contradict it", _contradicted(data.agreement)))
+    asked, used = data.config.get("map", {}).get("mapper"), data.stages.get("map", {}).get("mapper")
+    if asked and used and used != asked:
+        rows.append(("mapper", f"{esc(used)}: the {esc(asked)} mapper's model was contradicted by its pairs"))
     left_out = [n for n in data.names if n not in set(m.names)]
     if left_out:
         shown = ", ".join(esc(n) for n in left_out[:20]) + (" ..." if len(left_out) > 20 else "")
