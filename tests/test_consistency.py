@@ -194,3 +194,28 @@ def test_a_contradicted_global_model_is_kept_when_remaps_are_off(scene, tmp_path
                 progress=False)
     info = records.done_info(tmp_path / "out", "map")
     assert seeds == [] and info["mapper"] == "global" and info["first_model_pairs_contradicted"] == 5
+
+
+def test_a_round_continues_the_incremental_model_that_replaced_a_global_one(scene, tmp_path, monkeypatch):
+    """Once the incremental mapper's model replaced a contradicted global one, a round that maps again
+    continues that model with the incremental mapper, as when it was asked for."""
+    rec, db_path = scene
+    calls = []
+
+    def fake_incremental(conf, db, images, tmp, seed, progress, num_images, input_model, **kwargs):
+        calls.append(("incremental", input_model is not None))
+        return colmap.MappedModels({0: rec})
+
+    def fake_global(*args, **kwargs):
+        calls.append(("global", False))
+        return colmap.MappedModels({0: turned(rec, 3, 3.0)})
+
+    monkeypatch.setattr(mapping, "_incremental", fake_incremental)
+    monkeypatch.setattr(colmap, "global_mapping", fake_global)
+    out = tmp_path / "out"
+    mapping.run(MapConfig(mapper="global"), db_path, tmp_path, out, seed=0, progress=False)
+    assert calls == [("global", False), ("incremental", False)]
+    mapping.run(MapConfig(mapper="global"), db_path, tmp_path, out, seed=0, progress=False, upstream_key="round 1",
+                input_model=out / "sparse" / "0")
+    info = records.done_info(out, "map")
+    assert calls[2:] == [("incremental", True)] and info["continued"] and info["mapper"] == "incremental"

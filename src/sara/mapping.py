@@ -351,7 +351,8 @@ def _extend(conf: MapConfig, db_path: Path, images_root: Path, tmp: Path, seed: 
     colmap_refine.triangulate_new_matches(input_model, db_path, images_root, start, num_threads=conf.num_threads,
                                           seed=seed)
     before = len(colmap.registered_images(start))
-    recs, num_images, _ = _map(conf, db_path, images_root, tmp / "extended", seed, progress, start)
+    recs, num_images, _ = _map(replace(conf, mapper="incremental"), db_path, images_root, tmp / "extended", seed,
+                               progress, start)
     reachable = max(colmap.verified_graph(db_path, min_num_inliers)[2], default=0)
     if recs.largest < reachable:
         logger.info("map: continuing from the model of %d views registered %d of the %d views joined by verified "
