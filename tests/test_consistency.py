@@ -219,3 +219,23 @@ def test_a_round_continues_the_incremental_model_that_replaced_a_global_one(scen
                 input_model=out / "sparse" / "0")
     info = records.done_info(out, "map")
     assert calls[2:] == [("incremental", True)] and info["continued"] and info["mapper"] == "incremental"
+
+
+def test_a_mapping_that_built_nothing_never_replaces_a_contradicted_model(scene, tmp_path, monkeypatch):
+    """No model has no pair to contradict it, yet it is no better than a contradicted one: neither a
+    remap nor the incremental mapper behind a global one that built nothing replaces the model."""
+    rec, db_path = scene
+    seeds = []
+
+    def fake_incremental(conf, db, images, tmp, seed, progress, num_images, input_model, **kwargs):
+        seeds.append(seed)
+        return colmap.MappedModels({0: turned(rec, 3, 3.0)} if len(seeds) == 1 else {})
+
+    monkeypatch.setattr(mapping, "_incremental", fake_incremental)
+    recs, _, _ = mapping._map(MapConfig(contradicted_remaps=1), db_path, tmp_path, tmp_path, seed=0, progress=False)
+    assert seeds == [0, 1] and recs.seed == 0 and recs.largest == 6
+    monkeypatch.setattr(mapping, "_incremental", lambda *a, **k: colmap.MappedModels({}))
+    monkeypatch.setattr(colmap, "global_mapping", lambda *a, **k: colmap.MappedModels({0: turned(rec, 3, 3.0)}))
+    (tmp_path / "g").mkdir()
+    recs, _, _ = mapping._map(MapConfig(mapper="global"), db_path, tmp_path, tmp_path / "g", seed=0, progress=False)
+    assert recs.mapper is None and recs.largest == 6

@@ -263,9 +263,10 @@ def _contradicted(check: colmap.Agreement) -> bool:
 
 def _better(new: colmap.MappedModels, new_check: colmap.Agreement, old: colmap.MappedModels,
             old_check: colmap.Agreement) -> bool:
-    """A model its pairs do not contradict beats one they do; then more views; then fewer contradictions."""
-    return (not _contradicted(new_check), new.largest, -len(new_check.contradicted)) > \
-        (not _contradicted(old_check), old.largest, -len(old_check.contradicted))
+    """Any model beats none; a model its pairs do not contradict beats one they do; then more views;
+    then fewer contradictions."""
+    return (new.largest > 0, not _contradicted(new_check), new.largest, -len(new_check.contradicted)) > \
+        (old.largest > 0, not _contradicted(old_check), old.largest, -len(old_check.contradicted))
 
 
 #: scenes of at least this many images are adjusted as a whole less often (`map.ba_global_growth` 0)
