@@ -55,10 +55,10 @@ def run(conf: MapConfig, db_path: Path, images_root: Path, out_dir: Path, *, see
         return sparse
     previous = records.read_record(out_dir, STAGE)
     # the incremental mapper continues its own models, and those it built for a contradicted global one
-    extend = input_model is not None and "incremental" in (conf.mapper, mapped_by(previous))
+    extend = input_model is not None and "incremental" in (conf.mapper, _mapped_by(previous))
     records.mark_started(out_dir, STAGE, key)
     checkpoint = Checkpoint(out_dir / ".sara" / CHECKPOINT, key, conf.checkpoint_minutes * 60) \
-        if conf.checkpoint_minutes > 0 and input_model is None else None
+        if conf.checkpoint_minutes > 0 and not extend else None
     if checkpoint is not None and overwrite:
         checkpoint.remove()
     tmp = out_dir / ".sara" / PARTIAL
@@ -98,7 +98,7 @@ def run(conf: MapConfig, db_path: Path, images_root: Path, out_dir: Path, *, see
     return sparse
 
 
-def mapped_by(record: dict[str, Any] | None) -> str | None:
+def _mapped_by(record: dict[str, Any] | None) -> str | None:
     """The mapper that built the model of a map stage's record (None for records before it was kept)."""
     return ((record or {}).get("info") or {}).get("mapper")
 

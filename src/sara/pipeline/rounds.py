@@ -342,8 +342,8 @@ def _map_again(run: RoundsRun, added: Round, work: Path, done: dict[str, Any]) -
 
     main = out_dir / "sparse" / "0"
     conf = run.conf
-    mapped_by = mapping.mapped_by(records.read_record(out_dir, mapping.STAGE))
-    extend = conf.rounds.extend_model and "incremental" in (conf.map.mapper, mapped_by) and colmap.has_model(main)
+    # whether the mapper may continue this model (the incremental one's) is the map stage's call
+    extend = conf.rounds.extend_model and colmap.has_model(main)
     mapping.run(conf.map, work, run.ctx.images_root, out_dir, seed=conf.seed,
                 upstream_key=fingerprint(match.matches_digest(work)), progress=run.progress,
                 min_num_inliers=conf.match.min_num_inliers, commit=commit, input_model=main if extend else None)
