@@ -276,3 +276,15 @@ def test_colmaps_log_reaches_its_file_at_once(tmp_path):
     out = subprocess.run([sys.executable, "-c", code, str(tmp_path / "a"), str(tmp_path / "b")],
                          capture_output=True, text=True, check=True, env=env).stdout
     assert out.strip() == "1"
+
+
+def test_map_with_the_global_mapper_from_the_command_line(finished_run, run_cli):
+    """`sara map OUT --mapper global` (the `--mapper global` of usage.md): the model is checked against
+    its own pairs and the map record says which mapper built the model it kept."""
+    from sara.io import records
+
+    result = run_cli("map", finished_run, "--mapper", "global", "--overwrite", "-q")
+    assert_ok(result)
+    info = records.done_info(finished_run, "map")
+    assert info["mapper"] in ("global", "incremental") and info["first_model_pairs_checked"] > 0
+    assert len(registered(finished_run)) == 10
