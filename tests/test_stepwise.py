@@ -266,3 +266,67 @@ def test_a_damaged_checkpoint_is_mapped_from_the_start(database: Path, tmp_path:
     again = stepwise.incremental_mapping(database, images, tmp_path / "b", _options(), direct_up_to=5000,
                                          on_next_image=count, checkpoint=checkpoint)
     assert len(seen) == 18 and len(again) == 1 and again[0].num_reg_images() == 20
+
+
+def test_a_remap_of_a_killed_run_resumes_from_its_own_checkpoint(database: Path, tmp_path: Path, monkeypatch):
+    """A first model found contradicted is mapped again under the next seed; a run killed during that
+    remap goes on from the remap's checkpoint, the first mapping's (ended) restored as it was."""
+    from sara import mapping
+    from sara.config import make_config
+
+    out = tmp_path / "out"
+    out.mkdir()
+    conf = make_config("sift-offline", {"map.ba_direct_max_images": 5000, "map.checkpoint_minutes": 1e-9,
+                                        "map.num_threads": 1, "map.contradicted_remaps": 1}).map
+    monkeypatch.setattr(mapping, "_contradicted", lambda check: True)  # every model found bent: one remap
+    register, incremental = stepwise._Run.register_next, mapping._incremental
+    registered, remapping = [], []
+
+    def counting(self, *args):
+        image_id, ok = register(self, *args)
+        registered.append(ok)
+        if remapping and remapping[-1] == "stop" and sum(registered) == 8:
+            raise KeyboardInterrupt
+        return image_id, ok
+
+    def marking(*args, checkpoint=None, **kwargs):
+        registered.clear()
+        remapping.append("stop" if checkpoint is not None and checkpoint.folder.name.endswith("-seed-1") else "go")
+        return incremental(*args, checkpoint=checkpoint, **kwargs)
+
+    monkeypatch.setattr(stepwise._Run, "register_next", counting)
+    monkeypatch.setattr(mapping, "_incremental", marking)
+    with pytest.raises(KeyboardInterrupt):
+        mapping.run(conf, database, database.parent / "images", out, progress=False)
+    first, remap = out / ".sara" / mapping.CHECKPOINT, out / ".sara" / f"{mapping.CHECKPOINT}-seed-1"
+    assert remapping == ["go", "stop"]
+    assert json.loads((first / "checkpoint.json").read_text())["current"] is None  # the first mapping ended
+    kept = json.loads((remap / "checkpoint.json").read_text())
+    assert kept["current"] == 0 and 2 < kept["views"][0] < 20
+
+    remapping.clear()  # no more stops
+    per_mapping = []
+
+    def tracing(*args, **kwargs):
+        registered.clear()
+        models = incremental(*args, **kwargs)
+        per_mapping.append(sum(registered))
+        return models
+
+    monkeypatch.setattr(mapping, "_incremental", tracing)
+    mapping.run(conf, database, database.parent / "images", out, progress=False)
+    # the first mapping registered nothing again, the remap only the views its checkpoint lacked
+    assert per_mapping == [0, 20 - kept["views"][0]]
+    assert len(pycolmap.Reconstruction(str(out / "sparse" / "0")).reg_image_ids()) == 20
+    assert not list((out / ".sara").glob(mapping.CHECKPOINT + "*"))  # every checkpoint removed once done
+
+
+def test_removing_a_checkpoint_removes_those_derived_from_it_and_nothing_else(tmp_path: Path):
+    base = stepwise.Checkpoint(tmp_path / "ckpt", "key-1", every_s=1.0)
+    derived = base.derived("seed-1", "view.jpg")
+    assert derived.folder == tmp_path / "ckpt-seed-1" and derived.key != base.key
+    assert derived.key != base.derived("seed-1", "other.jpg").key  # another start: another mapping
+    for name in ("ckpt", "ckpt.old", "ckpt-seed-1", "ckpt-seed-1.next", "ckpt2", "other"):
+        (tmp_path / name).mkdir()
+    base.remove()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["ckpt2", "other"]

@@ -120,8 +120,10 @@ def _first_model_check(recs: colmap.MappedModels, previous: dict[str, Any] | Non
 def _map(conf: MapConfig, db_path: Path, images_root: Path, tmp: Path, seed: int,
          progress: bool, input_model: Path | None = None, *, min_num_inliers: int = 15,
          checkpoint: Checkpoint | None = None) -> tuple[colmap.MappedModels, int, float]:
-    """COLMAP's mapper into `tmp` (continuing from `input_model` when given, incremental only); the
-    first mapping of a step-by-step one keeps its models in `checkpoint` and resumes from them."""
+    """COLMAP's mapper into `tmp` (continuing from `input_model` when given, incremental only). Each
+    step-by-step mapping from scratch keeps its models in a checkpoint and resumes from them: the first
+    in `checkpoint`, a retry from a forward pair, a remap under another seed and the incremental mapping
+    behind a contradicted global model in checkpoints derived from it."""
     num_images = len(colmap.database_images(db_path))
     colmap.set_seed(seed)
     tic = time.perf_counter()
@@ -130,17 +132,18 @@ def _map(conf: MapConfig, db_path: Path, images_root: Path, tmp: Path, seed: int
                             checkpoint=checkpoint)
         if input_model is None:
             recs = _forward_start(conf, db_path, images_root, tmp, seed, progress, num_images, recs,
-                                  min_num_inliers)
-            recs = _agreeing(conf, db_path, images_root, tmp, seed, progress, num_images, recs, min_num_inliers)
+                                  min_num_inliers, checkpoint)
+            recs = _agreeing(conf, db_path, images_root, tmp, seed, progress, num_images, recs, min_num_inliers,
+                             checkpoint)
     elif conf.mapper == "global":
-        recs = _global(conf, db_path, images_root, tmp, seed, progress, min_num_inliers)
+        recs = _global(conf, db_path, images_root, tmp, seed, progress, min_num_inliers, checkpoint)
     else:
         raise ValueError(f"unknown mapper {conf.mapper!r}; choose incremental or global")
     return recs, num_images, time.perf_counter() - tic
 
 
 def _global(conf: MapConfig, db_path: Path, images_root: Path, tmp: Path, seed: int, progress: bool,
-            min_num_inliers: int) -> colmap.MappedModels:
+            min_num_inliers: int, checkpoint: Checkpoint | None = None) -> colmap.MappedModels:
     """COLMAP's global mapper, its largest model checked against its own verified pairs; when they
     contradict it (`_contradicted`) and `map.contradicted_remaps` allows, the incremental mapper maps
     the scene too and the better model is kept (`_better`). On a sparse graph the global mapper glues
@@ -155,7 +158,8 @@ def _global(conf: MapConfig, db_path: Path, images_root: Path, tmp: Path, seed: 
                    "agree with", len(recs.agreement_check.contradicted), recs.agreement_check.checked)
     (tmp / "incremental").mkdir()
     again, _, _ = _map(replace(conf, mapper="incremental"), db_path, images_root, tmp / "incremental", seed,
-                       progress, min_num_inliers=min_num_inliers)
+                       progress, min_num_inliers=min_num_inliers,
+                       checkpoint=checkpoint.derived("incremental") if checkpoint else None)
     again.mapper = "incremental"
     return again if _better(again, again.agreement_check, recs, recs.agreement_check) else recs
 
@@ -166,7 +170,8 @@ FORWARD_RETRY_SHARE = 0.5
 
 
 def _forward_start(conf: MapConfig, db_path: Path, images_root: Path, tmp: Path, seed: int, progress: bool,
-                   num_images: int, first: colmap.MappedModels, min_num_inliers: int) -> colmap.MappedModels:
+                   num_images: int, first: colmap.MappedModels, min_num_inliers: int,
+                   checkpoint: Checkpoint | None = None) -> colmap.MappedModels:
     """Map again with a start from views that moved along their viewing direction allowed, when
     the first mapping built no model, or a largest model of less than `FORWARD_RETRY_SHARE` of the
     views joined by verified pairs; keeps the result whose largest model holds more views.
@@ -185,7 +190,8 @@ def _forward_start(conf: MapConfig, db_path: Path, images_root: Path, tmp: Path,
                     "moves along its viewing direction (driving, walking ahead): starting from a forward pair")
     retry_dir = tmp / "forward" if first.largest > 0 else tmp
     retry_dir.mkdir(exist_ok=True)
-    again = _incremental(conf, db_path, images_root, retry_dir, seed, progress, num_images, None, forward_start=True)
+    again = _incremental(conf, db_path, images_root, retry_dir, seed, progress, num_images, None, forward_start=True,
+                         checkpoint=checkpoint.derived("forward") if checkpoint else None)
     if again.largest <= first.largest:
         return first
     again.forward_start = True
@@ -211,7 +217,8 @@ REMAP_THREADS = 1
 
 
 def _agreeing(conf: MapConfig, db_path: Path, images_root: Path, tmp: Path, seed: int, progress: bool,
-              num_images: int, first: colmap.MappedModels, min_num_inliers: int) -> colmap.MappedModels:
+              num_images: int, first: colmap.MappedModels, min_num_inliers: int,
+              checkpoint: Checkpoint | None = None) -> colmap.MappedModels:
     """Map again, at most `map.contradicted_remaps` times, while the first mapping's largest model is
     contradicted by its own verified pairs (`_contradicted`): each time under the next seed, on
     `REMAP_THREADS` threads, the first model started from the view in most of the contradicting
@@ -240,7 +247,8 @@ def _agreeing(conf: MapConfig, db_path: Path, images_root: Path, tmp: Path, seed
         folder.mkdir()
         colmap.set_seed(seed + remaps)
         again = _incremental(replace(conf, num_threads=REMAP_THREADS), db_path, images_root, folder, seed + remaps,
-                             progress, num_images, None, forward_start=first.forward_start, first_image=start)
+                             progress, num_images, None, forward_start=first.forward_start, first_image=start,
+                             checkpoint=checkpoint.derived(folder.name, f"{start}") if checkpoint else None)
         again.forward_start, again.seed = first.forward_start, seed + remaps
         check = again.agreement(db_path, min_num_inliers)
         logger.warning("map: under seed %d the largest model holds %d views, %d of %d pairs contradict it",

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import contextlib
 import copy
+import glob
 import json
 import logging
 import os
@@ -29,7 +30,7 @@ import shutil
 import time
 from collections import Counter
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -95,9 +96,19 @@ class Checkpoint:
                 manager.clear()
         return None
 
+    def derived(self, label: str, detail: str = "") -> Checkpoint:
+        """The checkpoint of another mapping of the same inputs (a remap under another seed, a retry
+        from another start): its own folder beside this one, named by `label`; `detail` (what that
+        mapping starts from) goes into its key only."""
+        return replace(self, folder=self.folder.with_name(f"{self.folder.name}-{label}"),
+                       key=f"{self.key}/{label}/{detail}")
+
     def remove(self) -> None:
-        for suffix in ("", ".next", ".old"):
-            shutil.rmtree(self.folder.with_name(self.folder.name + suffix), ignore_errors=True)
+        """Remove this checkpoint and every one derived from it."""
+        name = self.folder.name
+        for folder in self.folder.parent.glob(glob.escape(name) + "*"):
+            if folder.name in (name, name + ".next", name + ".old") or folder.name.startswith(name + "-"):
+                shutil.rmtree(folder, ignore_errors=True)
 
 
 def incremental_mapping(db_path: Path, image_dir: Path, out_dir: Path, opts: pycolmap.IncrementalPipelineOptions,

@@ -201,8 +201,9 @@ class MapConfig:
         value set by hand always uses that loop; under 1,000 it keeps COLMAP's limit.""")
     checkpoint_minutes: float = option(10.0, reals(0), """Incremental mapper, step-by-step mapping (scenes of
         1,000 images or more, or ba_direct_max_images set): write the models so far at most this often (after
-        a global adjustment) to .sara/map-checkpoint, so that a run killed during a long mapping resumes from
-        them instead of mapping again from the start. 0: never.""")
+        a global adjustment) to .sara/map-checkpoint (a mapping done again, under another seed or from another
+        start, to .sara/map-checkpoint-*), so that a run killed during a long mapping resumes from them instead
+        of mapping again from the start. 0: never.""")
 
     def __post_init__(self) -> None:
         validate(self)
