@@ -288,3 +288,29 @@ def test_map_with_the_global_mapper_from_the_command_line(finished_run, run_cli)
     info = records.done_info(finished_run, "map")
     assert info["mapper"] in ("global", "incremental") and info["first_model_pairs_checked"] > 0
     assert len(registered(finished_run)) == 10
+
+
+def test_map_on_a_run_folder_rewrites_its_run_record_and_sets_its_old_accuracy_aside(finished_run, run_cli):
+    """After `sara map OUT --mapper global`, run.json and report.md describe the mapping now in OUT (the
+    mapper asked for, its record) and the accuracy of the model it replaced is no longer shown as this
+    one's: metrics.json is moved aside, run.json holds none. A map found up to date changes nothing."""
+    import json
+
+    from sara.pipeline.single import EARLIER_METRICS
+
+    run_before = json.loads((finished_run / "run.json").read_text())
+    assert run_before["config"]["map"]["mapper"] == "incremental" and run_before["metrics"]
+    kept = run_cli("map", finished_run, "-q")
+    assert_ok(kept)
+    assert json.loads((finished_run / "run.json").read_text()) == run_before  # up to date: nothing rewritten
+    result = run_cli("map", finished_run, "--mapper", "global", "--overwrite", "-q")
+    assert_ok(result)
+    run = json.loads((finished_run / "run.json").read_text())
+    assert run["config"]["map"]["mapper"] == "global"
+    assert run["config"]["pairs"] == run_before["config"]["pairs"]  # the other stages' settings as they ran
+    assert run["stages"]["map"]["mapper"] in ("global", "incremental")
+    assert run["stages"]["map"]["time_s"] != run_before["stages"]["map"]["time_s"]
+    assert run["metrics"] is None and not (finished_run / "metrics.json").exists()
+    assert (finished_run / EARLIER_METRICS).exists()
+    sizes = run["stages"]["map"]["component_sizes"]
+    assert f"{sizes} images registered" in (finished_run / "report.md").read_text()

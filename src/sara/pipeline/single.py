@@ -4,6 +4,8 @@ output folder the features of another (bench methods and the demo share one extr
 from __future__ import annotations
 
 import dataclasses
+import logging
+import os
 import shutil
 from pathlib import Path
 from typing import Any
@@ -11,10 +13,21 @@ from typing import Any
 from .. import colmap, extract, incremental, mapping, match
 from ..config import PipelineConfig
 from ..features import features_file_name
-from ..io import DamagedOutputError, IncompleteStageError, OutputLock, link_or_copy, read_json, records
+from ..io import (
+    DamagedOutputError,
+    IncompleteStageError,
+    OutputLock,
+    link_or_copy,
+    read_json,
+    records,
+    write_text_atomic,
+)
 from ..io.images import folder_mismatch
 from . import pairs_stage
+from .record import RunReport, render_report
 from .run import finish_update, map_model, match_pairs, preflight, recover
+
+logger = logging.getLogger(__name__)
 
 PAIRS_NAME = pairs_stage.PAIRS_NAME
 PAIRS_STAGE = pairs_stage.STAGE
@@ -72,9 +85,12 @@ def match_only(conf: PipelineConfig, out_dir: Path, pairs_path: Path | None = No
         features = out_dir / features_file_name(conf.extract)
         # a pending update (`sara extract` on a changed folder): pairs matched before are copied
         reserve = None if overwrite else incremental.earlier_matches(out_dir, record.get("key", ""))
+        before = records.read_record(out_dir, match.STAGE)
         work = match_pairs(conf, pairs_path, features, out_dir, progress=progress, beside=True, overwrite=overwrite,
                            reserve=reserve)
         match.commit(work, db, out_dir)
+        if records.read_record(out_dir, match.STAGE) != before:  # matched now, not found up to date
+            _record_in_run(out_dir, conf, match.STAGE)
     return records.done_info(out_dir, match.STAGE)
 
 
@@ -109,9 +125,41 @@ def map_only(conf: PipelineConfig, out_dir: Path, images_root: Path | None = Non
         # a pending update continues the earlier model, as `sara run` does, and is closed
         extract_key = (records.read_record(out_dir, extract.STAGE) or {}).get("key", "")
         start = incremental.start_model(out_dir, extract_key) if conf.rounds.extend_model and not overwrite else None
+        before = records.read_record(out_dir, mapping.STAGE)
         map_model(conf, images_root, out_dir, progress=progress, overwrite=overwrite, input_model=start)
         finish_update(out_dir, extract_key)
+        after = records.read_record(out_dir, mapping.STAGE)
+        if after != before:  # mapped now, not found up to date
+            changed = (after or {}).get("outputs") != (before or {}).get("outputs")
+            _record_in_run(out_dir, conf, mapping.STAGE, model_changed=changed)
     return records.done_info(out_dir, mapping.STAGE)
+
+
+#: where `sara map` moves the accuracy of the model it replaced
+EARLIER_METRICS = "metrics.earlier.json"
+
+
+def _record_in_run(out_dir: Path, conf: PipelineConfig, stage: str, *, model_changed: bool = False) -> None:
+    """After `sara match` or `sara map`: run.json and report.md describe the stage as it ran now (its
+    record, and the settings it ran with in place of the run's), so that the report of the folder is
+    the report of what it holds. A new model makes the accuracy measured on the one before it stale:
+    metrics.json is moved to EARLIER_METRICS and run.json's metrics are dropped."""
+    path = out_dir / "run.json"
+    if not path.exists():
+        return
+    run = read_json(path)
+    report = RunReport(out_dir, Path(run["images_root"]), {**run.get("config", {}), stage: conf.to_dict()[stage]},
+                       stages={**run.get("stages", {}), stage: records.done_info(out_dir, stage)},
+                       skipped_images=run.get("skipped_images", {}), metrics=run.get("metrics"))
+    if model_changed and (report.metrics or (out_dir / "metrics.json").exists()):
+        report.metrics = None
+        if (out_dir / "metrics.json").exists():
+            os.replace(out_dir / "metrics.json", out_dir / EARLIER_METRICS)
+        logger.warning("map: a new model: the accuracy measured on the one before it is in %s; measure this one "
+                       "with `sara evaluate %s GT --json %s`", EARLIER_METRICS, out_dir, out_dir / "metrics.json")
+    report.save()
+    if "images" in report.stages:  # written by every run that got past extraction
+        write_text_atomic(out_dir / "report.md", render_report(report))
 
 
 def _check_image_folder(out_dir: Path, images_root: Path, what: str) -> None:
