@@ -10,12 +10,14 @@ contradict the model before and after, the time, and with --gt the AUC against t
 (`sara evaluate`).
 
     python lab/scripts/close_loop.py MODEL DATABASE OUT [--gt GT] [--merge-px 4,16,64] [--passes K]
+        [--images IMAGES --retriangulate --continue-mapping]
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import shutil
 import subprocess
 import sys
 import time
@@ -64,6 +66,32 @@ def evaluate(model: Path, gt: Path) -> dict:
     return {"auc": metrics.get("auc"), "registered": metrics.get("num_registered")}
 
 
+def _row(label: str, folder: Path, database: Path, gt: Path | None, tic: float, **extra) -> None:
+    after = agreement(pycolmap.Reconstruction(str(folder)), database)
+    row = {"step": label, **extra, "seconds": round(time.perf_counter() - tic, 1),
+           "contradicted": len(after.contradicted), "checked": after.checked}
+    if gt:
+        row.update(evaluate(folder, gt))
+    print(json.dumps(row), flush=True)
+
+
+def _continued(model: Path, database: Path, images: Path, out: Path) -> Path:
+    """sara's continuation of a model (the rounds' repair schedule): the views it lacks registered
+    into it, then adjusted; the largest model written to `out`."""
+    from sara import mapping
+    from sara.config import make_config
+
+    tmp = out.with_name(out.name + ".partial")
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    recs, _, _ = mapping._extend(make_config("sift-offline", {}).map, database, images, tmp, 0, False, model, 15)
+    largest = max(recs.reconstructions.values(), key=lambda rec: rec.num_reg_images())
+    out.mkdir(parents=True, exist_ok=True)
+    largest.write(str(out))
+    shutil.rmtree(tmp, ignore_errors=True)
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("model", type=Path)
@@ -73,35 +101,31 @@ def main() -> None:
     ap.add_argument("--merge-px", default="4,16,64")
     ap.add_argument("--refinements", type=int, default=5)
     ap.add_argument("--passes", type=int, default=1, help="merge and refine this many times")
-    ap.add_argument("--retriangulate", type=Path, metavar="IMAGES",
+    ap.add_argument("--images", type=Path, help="the image folder (for the two steps below)")
+    ap.add_argument("--retriangulate", action="store_true",
                     help="then triangulate every match anew on the mended poses and adjust (sara's refinement)")
+    ap.add_argument("--continue-mapping", action="store_true",
+                    help="then register the views the model lacks into it (sara's continuation)")
     args = ap.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
-    before = agreement(pycolmap.Reconstruction(str(args.model)), args.database)
-    row = {"model": "as mapped", "contradicted": len(before.contradicted), "checked": before.checked}
-    if args.gt:
-        row.update(evaluate(args.model, args.gt))
-    print(json.dumps(row), flush=True)
+    _row("as mapped", args.model, args.database, args.gt, time.perf_counter())
     for px in (float(v) for v in args.merge_px.split(",")):
+        tic = time.perf_counter()
         rec, info = mend(args.model, args.database, px, args.refinements, args.passes)
         folder = args.out / f"merge-{px:g}px-{args.passes}"
         folder.mkdir(exist_ok=True)
         rec.write(str(folder))
-        after = agreement(rec, args.database)
-        info.update(contradicted=len(after.contradicted), checked=after.checked)
-        if args.gt:
-            info.update(evaluate(folder, args.gt))
-        print(json.dumps(info), flush=True)
+        _row("mended", folder, args.database, args.gt, tic, **info)
         if args.retriangulate:
             tic = time.perf_counter()
             again = folder.with_name(folder.name + "-retriangulated")
-            triangulate_and_adjust(folder, args.database, args.retriangulate, again)
-            after = agreement(pycolmap.Reconstruction(str(again)), args.database)
-            row = {"retriangulated": str(px), "seconds": round(time.perf_counter() - tic, 1),
-                   "contradicted": len(after.contradicted), "checked": after.checked}
-            if args.gt:
-                row.update(evaluate(again, args.gt))
-            print(json.dumps(row), flush=True)
+            triangulate_and_adjust(folder, args.database, args.images, again)
+            _row("retriangulated", again, args.database, args.gt, tic, merge_px=px)
+            folder = again
+        if args.continue_mapping:
+            tic = time.perf_counter()
+            grown = _continued(folder, args.database, args.images, folder.with_name(folder.name + "-continued"))
+            _row("continued", grown, args.database, args.gt, tic, merge_px=px)
 
 
 if __name__ == "__main__":
