@@ -280,3 +280,51 @@ def test_after_the_fill_one_more_repair_then_the_pose_guided_round(tmp_path: Pat
         matched += added.pairs
     # and the pose-guided pairs once more, never a third repair
     assert sara_source.after_mapping(ctx, matched, model).role == "pose-guided"
+
+
+@pytest.mark.parametrize("views_after", [5, 8])
+def test_a_round_whose_mapping_holds_fewer_views_keeps_the_model_it_started_from(tmp_path: Path, monkeypatch,
+                                                                                 views_after):
+    """A round maps its matches again (continuing the model); when the result's main model holds fewer
+    views than the model the round started from, that model is put back, as the map stage's model of
+    the round's matches (a re-run keeps it). As many views or more: the round's model stays."""
+    from types import SimpleNamespace
+
+    from model_utils import ring_poses, write_text_model
+    from sara import colmap, mapping
+    from sara.config import make_config
+    from sara.io import records
+    from sara.pairs import Round
+    from sara.pipeline import rounds as pipeline_rounds
+
+    out = tmp_path / "out"
+    poses = ring_poses(8)
+    write_text_model(out / "sparse" / "0", poses)
+    records.mark_done(out, mapping.STAGE, "matches-before", {"num_registered": 8, "num_components": 1, "time_s": 1.0},
+                      outputs={"sparse": mapping.model_digest(out / "sparse")})
+    committed = []
+
+    def mapped_again(conf, db, images, out_dir, *, commit, input_model, **kwargs):
+        assert input_model == out_dir / "sparse" / "0"  # the round continues the model
+        commit()
+        new = out_dir / ".sara" / "new"
+        write_text_model(new / "0", dict(list(poses.items())[:views_after]))
+        mapping.swap_in(new, out_dir / "sparse")
+        records.mark_done(out_dir, mapping.STAGE, "matches-after",
+                          {"num_registered": views_after, "num_components": 2, "time_s": 2.0},
+                          outputs={"sparse": mapping.model_digest(out_dir / "sparse")})
+
+    monkeypatch.setattr(pipeline_rounds.mapping, "run", mapped_again)
+    monkeypatch.setattr(pipeline_rounds.match, "commit", lambda *args: committed.append("matches"))
+    monkeypatch.setattr(pipeline_rounds.match, "matches_digest", lambda db: "digest")
+    monkeypatch.setattr(pipeline_rounds, "_commit_pairs", lambda *args: committed.append("pairs"))
+    run = SimpleNamespace(out_dir=out, conf=make_config("sift-offline"), ctx=SimpleNamespace(images_root=tmp_path),
+                          progress=False)
+    map_s = pipeline_rounds._map_again(run, Round([("a", "b")], "repair"), tmp_path / "work.db", {})
+    assert map_s == 2.0 and committed == ["matches", "pairs"]  # the round's matches and pairs stay committed
+    record = records.read_record(out, mapping.STAGE)
+    assert record["key"] == "matches-after"
+    assert record["info"]["num_registered"] == max(views_after, 8)
+    assert len(colmap.registered_images(out / "sparse" / "0")) == max(views_after, 8)
+    assert record["outputs"]["sparse"] == mapping.model_digest(out / "sparse")  # not seen as damaged on a re-run
+    assert not (out / ".sara" / pipeline_rounds.BEFORE_ROUND).exists()

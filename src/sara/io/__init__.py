@@ -227,7 +227,8 @@ def prepare_output_dir(out_dir: Path) -> Path:
 
 #: files and folders that a killed run can leave; safe to remove while holding the lock
 _TMP_FILE = re.compile(r"^\..+\.tmp(\.[A-Za-z0-9]+)?$")
-_SARA_TEMPORARIES = ("match_chunk*", "*chunk*.txt", "score-views-*", "sparse.partial", "pairs.next", "*.tmp")
+_SARA_TEMPORARIES = ("match_chunk*", "*chunk*.txt", "score-views-*", "sparse.partial", "sparse.before-round",
+                     "pairs.next", "*.tmp")
 
 
 def clean_temporaries(out_dir: Path) -> list[Path]:

@@ -38,6 +38,9 @@ ROUNDS_STAGE = "rounds"
 FINISH_STAGE = "finish"
 #: the pairs of a round, until its model replaces the previous one
 STAGED_PAIRS = "pairs.next.txt"
+#: where a round keeps the model it started from (hard links) until its own mapping is known to hold
+#: no fewer views in the main model
+BEFORE_ROUND = "sparse.before-round"
 
 
 @dataclass
@@ -344,10 +347,50 @@ def _map_again(run: RoundsRun, added: Round, work: Path, done: dict[str, Any]) -
     conf = run.conf
     # whether the mapper may continue this model (the incremental one's) is the map stage's call
     extend = conf.rounds.extend_model and colmap.has_model(main)
-    mapping.run(conf.map, work, run.ctx.images_root, out_dir, seed=conf.seed,
-                upstream_key=fingerprint(match.matches_digest(work)), progress=run.progress,
-                min_num_inliers=conf.match.min_num_inliers, commit=commit, input_model=main if extend else None)
-    return records.done_info(out_dir, mapping.STAGE).get("time_s", 0.0)
+    before = out_dir / ".sara" / BEFORE_ROUND
+    previous = records.read_record(out_dir, mapping.STAGE)
+    _linked_copy(out_dir / "sparse", before)
+    try:
+        mapping.run(conf.map, work, run.ctx.images_root, out_dir, seed=conf.seed,
+                    upstream_key=fingerprint(match.matches_digest(work)), progress=run.progress,
+                    min_num_inliers=conf.match.min_num_inliers, commit=commit, input_model=main if extend else None)
+        map_s = records.done_info(out_dir, mapping.STAGE).get("time_s", 0.0)
+        _keep_the_larger(out_dir, before, previous)
+    finally:
+        shutil.rmtree(before, ignore_errors=True)
+    return map_s
+
+
+def _linked_copy(sparse: Path, dest: Path) -> None:
+    """`sparse` as it is now, in `dest`: hard links (the mapper writes new files, never into old
+    ones), copies where links cannot be made; nothing when there is no `sparse`."""
+    shutil.rmtree(dest, ignore_errors=True)
+    if sparse.is_dir():
+        shutil.copytree(sparse, dest, copy_function=_link_or_copy)
+
+
+def _link_or_copy(src: str, dst: str) -> None:
+    try:
+        os.link(src, dst)
+    except OSError:
+        shutil.copy2(src, dst)
+
+
+def _keep_the_larger(out_dir: Path, before: Path, previous: dict[str, Any] | None) -> None:
+    """Put the round's starting model (`before`, its map record `previous`) back when the round's
+    mapping holds fewer views in its main model: a round adds pairs to register views, and a
+    continuation that lost some (a 48-view low-texture turntable: 25 views, then 16 after a second
+    repair) must not end the run with less than it had. It stays the map stage's model of the
+    matches now committed (the round's), so a re-run keeps it."""
+    had = int(((previous or {}).get("info") or {}).get("num_registered", 0))
+    now = records.read_record(out_dir, mapping.STAGE) or {}
+    holds = int((now.get("info") or {}).get("num_registered", 0))
+    if holds >= had or not colmap.has_model(before / "0"):
+        return
+    logger.warning("the round's mapping holds %d views in its main model, fewer than the %d of the model it started "
+                   "from: keeping that model", holds, had)
+    mapping.swap_in(before, out_dir / "sparse")
+    mapping.adopt(out_dir, {**previous["info"], "kept_after_round": holds}, key=now.get("key", ""))
 
 
 def _finish(run: RoundsRun, *, refined: bool) -> dict[str, Any] | None:
