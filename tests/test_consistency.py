@@ -239,3 +239,21 @@ def test_a_mapping_that_built_nothing_never_replaces_a_contradicted_model(scene,
     (tmp_path / "g").mkdir()
     recs, _, _ = mapping._map(MapConfig(mapper="global"), db_path, tmp_path, tmp_path / "g", seed=0, progress=False)
     assert recs.mapper is None and recs.largest == 6
+
+
+def test_an_agreeing_remap_that_lost_more_views_than_the_seam_holds_does_not_replace_the_bent_model():
+    """The 10,000-image world: a bent first model of 9,350 views, 81 pairs contradicting it, and a remap
+    that broke the street into pieces, the largest of 2,755 views that no pair contradicts. The pieces
+    are not a mended bend: the bent model stays. A remap that holds every view but the seam's is."""
+    from types import SimpleNamespace
+
+    def views(n: int) -> SimpleNamespace:
+        return SimpleNamespace(largest=n)
+
+    seam = colmap.Agreement(21_808, [(f"a{i}", f"b{i}") for i in range(81)])  # 162 views
+    clean = colmap.Agreement(4_000, [])
+    assert not mapping._better(views(2_755), clean, views(9_350), seam)
+    assert mapping._better(views(9_350), seam, views(2_755), clean)
+    assert mapping._better(views(9_350 - 162), clean, views(9_350), seam)  # mended, the seam's views left out
+    assert not mapping._better(views(9_350 - 163), clean, views(9_350), seam)
+    assert mapping._better(views(1), clean, views(0), clean)  # any model beats none
