@@ -243,8 +243,9 @@ def test_a_mapping_that_built_nothing_never_replaces_a_contradicted_model(scene,
 
 def test_an_agreeing_remap_that_lost_more_views_than_the_seam_holds_does_not_replace_the_bent_model():
     """The 10,000-image world: a bent first model of 9,350 views, 81 pairs contradicting it, and a remap
-    that broke the street into pieces, the largest of 2,755 views that no pair contradicts. The pieces
-    are not a mended bend: the bent model stays. A remap that holds every view but the seam's is."""
+    that broke the street into pieces, the largest of 2,755 views (there contradicted too; here one no
+    pair contradicts). Pieces are not a mended bend: the bent model stays. A remap that holds every
+    view but the seam's replaces it."""
     from types import SimpleNamespace
 
     def views(n: int) -> SimpleNamespace:
