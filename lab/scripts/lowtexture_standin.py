@@ -21,6 +21,7 @@ from pathlib import Path
 
 import cv2
 import pycolmap
+from sweep_standin import image_line, write_truth  # this folder's: run as a script
 
 
 def main() -> None:
@@ -53,13 +54,8 @@ def main() -> None:
             (camera.params[0], camera.params[0], camera.params[1], camera.params[2])
         cameras.append(f"{k} PINHOLE {photo.shape[1]} {photo.shape[0]} {fx * sx:.6f} {fy * sy:.6f} {cx * sx:.6f} "
                        f"{cy * sy:.6f}")
-        pose = image.cam_from_world()
-        qx, qy, qz, qw = pose.rotation.quat
-        tx, ty, tz = pose.translation
-        images.append(f"{k} {qw} {qx} {qy} {qz} {tx} {ty} {tz} {k} {name}\n\n")  # no 2D points: an empty line
-    (args.dest / "gt" / "cameras.txt").write_text("\n".join(cameras) + "\n")
-    (args.dest / "gt" / "images.txt").write_text("".join(images))
-    (args.dest / "gt" / "points3D.txt").write_text("")
+        images.append(image_line(k, image, name))
+    write_truth(args.dest / "gt", cameras, images)
     (args.dest / "SCENE.md").write_text(
         f"Low-texture stand-in of {args.scene.name} (lab/scripts/lowtexture_standin.py): every view resized to a "
         f"long side of {args.long_side} px and blurred with a Gaussian of sigma {args.blur} px, saved as PNG; one "

@@ -29,6 +29,21 @@ import pycolmap
 from PIL import Image
 
 
+def image_line(k: int, image: pycolmap.Image, name: str) -> str:
+    """images.txt's lines of a true view as image `k` (camera `k`) named `name`, with no 2D points."""
+    pose = image.cam_from_world()
+    qx, qy, qz, qw = pose.rotation.quat
+    tx, ty, tz = pose.translation
+    return f"{k} {qw} {qx} {qy} {qz} {tx} {ty} {tz} {k} {name}\n\n"  # no 2D points: an empty line
+
+
+def write_truth(gt_dir: Path, cameras: list[str], images: list[str]) -> None:
+    """A true model in COLMAP text: `cameras` (cameras.txt lines), `images` (`image_line`s), no points."""
+    (gt_dir / "cameras.txt").write_text("\n".join(cameras) + "\n")
+    (gt_dir / "images.txt").write_text("".join(images))
+    (gt_dir / "points3D.txt").write_text("")
+
+
 def facing_views(gt: pycolmap.Reconstruction, count: int) -> list[int]:
     """The `count` image ids whose optical axes are closest to the mean axis, in name order."""
     ids = sorted(gt.images, key=lambda i: gt.images[i].name)
@@ -81,13 +96,8 @@ def main() -> None:
         photo.save(args.dest / "images" / name, quality=args.quality)
         params = f"{fx * sx:.6f} {fy * sy:.6f} {cx * sx:.6f} {cy * sy:.6f}"
         cameras.append(f"{k} PINHOLE {photo.width} {photo.height} {params}")
-        pose = image.cam_from_world()
-        qx, qy, qz, qw = pose.rotation.quat
-        tx, ty, tz = pose.translation
-        images.append(f"{k} {qw} {qx} {qy} {qz} {tx} {ty} {tz} {k} {name}\n\n")  # no 2D points: an empty line
-    (args.dest / "gt" / "cameras.txt").write_text("\n".join(cameras) + "\n")
-    (args.dest / "gt" / "images.txt").write_text("".join(images))
-    (args.dest / "gt" / "points3D.txt").write_text("")
+        images.append(image_line(k, image, name))
+    write_truth(args.dest / "gt", cameras, images)
     (args.dest / "SCENE.md").write_text(
         f"Forward-facing sweep stand-in of {args.scene.name} (lab/scripts/sweep_standin.py): the {args.count} "
         f"views whose optical axes are closest to the mean axis, resized to a long side of {args.long_side} px, "
