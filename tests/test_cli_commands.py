@@ -290,7 +290,8 @@ def test_map_with_the_global_mapper_from_the_command_line(finished_run, run_cli)
     assert len(registered(finished_run)) == 10
 
 
-def test_map_on_a_run_folder_rewrites_its_run_record_and_sets_its_old_accuracy_aside(finished_run, run_cli):
+def test_map_on_a_run_folder_rewrites_its_run_record_and_sets_its_old_accuracy_aside(finished_run, run_cli,
+                                                                                      synthetic_scene):
     """After `sara map OUT --mapper global`, run.json and report.md describe the mapping now in OUT (the
     mapper asked for, its record) and the accuracy of the model it replaced is no longer shown as this
     one's: metrics.json is moved aside, run.json holds none. A map found up to date changes nothing."""
@@ -314,3 +315,6 @@ def test_map_on_a_run_folder_rewrites_its_run_record_and_sets_its_old_accuracy_a
     assert (finished_run / EARLIER_METRICS).exists()
     sizes = run["stages"]["map"]["component_sizes"]
     assert f"{sizes} images registered" in (finished_run / "report.md").read_text()
+    # the new model's accuracy, as usage.md says to measure it: `sara evaluate OUT GT --json OUT/metrics.json`
+    assert_ok(run_cli("evaluate", finished_run, synthetic_scene[1], "--json", finished_run / "metrics.json"))
+    assert json.loads((finished_run / "metrics.json").read_text())["num_registered"] == len(registered(finished_run))

@@ -25,7 +25,7 @@ from typing import Any
 
 from .. import colmap, eta, extract, mapping, match
 from ..config import PipelineConfig
-from ..io import NoResultError, file_digest, fingerprint, records
+from ..io import NoResultError, file_digest, fingerprint, link_or_copy, records
 from ..io.pairs import Pair, read_pairs, write_pairs
 from ..pairs import PairContext, Round, Rounds
 
@@ -366,20 +366,13 @@ def _linked_copy(sparse: Path, dest: Path) -> None:
     ones), copies where links cannot be made; nothing when there is no `sparse`."""
     shutil.rmtree(dest, ignore_errors=True)
     if sparse.is_dir():
-        shutil.copytree(sparse, dest, copy_function=_link_or_copy)
-
-
-def _link_or_copy(src: str, dst: str) -> None:
-    try:
-        os.link(src, dst)
-    except OSError:
-        shutil.copy2(src, dst)
+        shutil.copytree(sparse, dest, copy_function=link_or_copy)
 
 
 def _keep_the_larger(out_dir: Path, before: Path, previous: dict[str, Any] | None) -> None:
     """Put the round's starting model (`before`, its map record `previous`) back when the round's
     mapping holds fewer views in its main model: a round adds pairs to register views, and a
-    continuation that lost some (a 48-view low-texture turntable: 25 views, then 16 after a second
+    continuation that lost some (a 47-view low-texture stand-in: 25 views, then 16 after a second
     repair) must not end the run with less than it had. It stays the map stage's model of the
     matches now committed (the round's), so a re-run keeps it."""
     had = int(((previous or {}).get("info") or {}).get("num_registered", 0))
