@@ -60,6 +60,22 @@ def test_repair_pairs_rank_by_the_scores_given_again(tmp_path: Path):
         ("a", "c"), ("b", "d")]
 
 
+def test_repair_pairs_leave_out_candidates_that_would_not_verify(tmp_path: Path):
+    """A left-out view whose candidates into the model all count fewer inliers than verification asks
+    for gets none of them (the cap's room stays for the fill round); a count that reaches it, first
+    or given again, is taken."""
+    path = _scores(tmp_path / "scores.csv", [
+        ("a", "c", 14, "few_inliers"), ("b", "c", 12, "few_inliers"),
+        ("a", "d", 9, "few_inliers"), ("b", "d", 40, ""),
+        ("a", "e", 3, "no_model"), ("b", "e", 8, "few_inliers"),
+    ])
+    base = {"pairs": [("a", "b")], "main": {"a", "b"}, "left_out": ["c", "d", "e"], "per_view": 2}
+    assert repair_pairs(path, **base, min_inliers=15) == [("b", "d")]
+    assert repair_pairs(path, **base, min_inliers=15, rescore=lambda pairs: {("a", "c"): 15, ("b", "d"): 11}) == [
+        ("a", "c")]
+    assert len(repair_pairs(path, **base)) == 5  # no minimum: every candidate with a model
+
+
 def test_the_repair_scores_again_with_the_ratio_test(monkeypatch, tmp_path: Path):
     from types import SimpleNamespace
 
@@ -91,7 +107,8 @@ def test_a_repair_that_leaves_most_of_its_views_out_is_not_repeated(tmp_path: Pa
     registered = {"a", "b", "c"}
     monkeypatch.setattr(sara_source.colmap, "registered_images", lambda model_dir: set(registered))
 
-    def fake_repair(scores, pairs, main, left_out, per_view, rescore=None):  # the first unmatched link into the model
+    def fake_repair(scores, pairs, main, left_out, per_view, rescore=None, min_inliers=0):
+        """The first unmatched link into the model."""
         done = {tuple(sorted(p)) for p in pairs}
         return [next(p for p in (tuple(sorted((m, v))) for m in sorted(main)) if p not in done) for v in left_out]
 
@@ -216,7 +233,7 @@ def test_views_a_repair_left_out_get_the_fill_round_once_then_the_pose_guided_on
     # a repair that finds no candidate into the model (not stalled) leads to the fill round too
     registered.difference_update({"d", "e"})
     monkeypatch.setattr(sara_source, "_repair_stalled", lambda ctx, key, pairs, left_out: False)
-    monkeypatch.setattr(sara_source, "repair_pairs", lambda scores, pairs, main, left_out, per_view, rescore=None: [])
+    monkeypatch.setattr(sara_source, "repair_pairs", lambda *args, **kwargs: [])
     assert sara_source.after_mapping(ctx, tree, model).role == "fill"
 
 

@@ -102,7 +102,8 @@ def _repair_round(ctx: PairContext, pairs: list[Pair], main: set[str], left_out:
     model (`repair_pairs`) and pairs between its neighbours in the model (`neighbour_pairs`), taken
     one of each per view in turn, so that a short room still reaches every view."""
     per_view = ctx.conf.rounds.repair_pairs_per_view
-    own = repair_pairs(ctx.out_dir / SCORES_NAME, pairs, main, left_out, per_view, rescore=_ratio_rescore(ctx))
+    own = repair_pairs(ctx.out_dir / SCORES_NAME, pairs, main, left_out, per_view, rescore=_ratio_rescore(ctx),
+                       min_inliers=ctx.conf.match.min_num_inliers)
     own_by_view: dict[str, list[Pair]] = {v: [] for v in left_out}
     targets = set(left_out)
     for pair in own:
