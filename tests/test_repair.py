@@ -63,7 +63,8 @@ def test_repair_pairs_rank_by_the_scores_given_again(tmp_path: Path):
 def test_repair_pairs_leave_out_candidates_that_would_not_verify(tmp_path: Path):
     """A left-out view whose candidates into the model all count fewer inliers than verification asks
     for gets none of them (the cap's room stays for the fill round); a count that reaches it, first
-    or given again, is taken."""
+    or given again, is taken. Where the scorer saw only part of a view's keypoints, its count does
+    not hold the pair back."""
     path = _scores(tmp_path / "scores.csv", [
         ("a", "c", 14, "few_inliers"), ("b", "c", 12, "few_inliers"),
         ("a", "d", 9, "few_inliers"), ("b", "d", 40, ""),
@@ -74,6 +75,9 @@ def test_repair_pairs_leave_out_candidates_that_would_not_verify(tmp_path: Path)
     assert repair_pairs(path, **base, min_inliers=15, rescore=lambda pairs: {("a", "c"): 15, ("b", "d"): 11}) == [
         ("a", "c")]
     assert len(repair_pairs(path, **base)) == 5  # no minimum: every candidate with a model
+    # the minimum holds only where the scorer saw every keypoint of both views (here a, b, c)
+    assert repair_pairs(path, **base, min_inliers=15, fully_scored={"a", "b", "c"}) == [
+        ("a", "d"), ("b", "d"), ("b", "e")]
 
 
 def test_the_repair_scores_again_with_the_ratio_test(monkeypatch, tmp_path: Path):
@@ -103,11 +107,12 @@ def test_a_repair_that_leaves_most_of_its_views_out_is_not_repeated(tmp_path: Pa
 
     from sara.config import PipelineConfig
     from sara.pairs.sara import rounds as sara_source
+    monkeypatch.setattr(sara_source, "_fully_scored", lambda ctx, views: set(views))
 
     registered = {"a", "b", "c"}
     monkeypatch.setattr(sara_source.colmap, "registered_images", lambda model_dir: set(registered))
 
-    def fake_repair(scores, pairs, main, left_out, per_view, rescore=None, min_inliers=0):
+    def fake_repair(scores, pairs, main, left_out, per_view, **options):
         """The first unmatched link into the model."""
         done = {tuple(sorted(p)) for p in pairs}
         return [next(p for p in (tuple(sorted((m, v))) for m in sorted(main)) if p not in done) for v in left_out]
@@ -164,6 +169,7 @@ def test_the_repair_takes_one_pair_of_each_kind_per_view_in_turn(tmp_path: Path,
 
     from sara.config import make_config
     from sara.pairs.sara import rounds as sara_source
+    monkeypatch.setattr(sara_source, "_fully_scored", lambda ctx, views: set(views))
 
     own = {"v": [("m1", "v"), ("m2", "v")], "w": [("m1", "w")]}
     near = {"v": [("m1", "m2"), ("m2", "m3")], "w": [("m3", "m4")]}
@@ -202,6 +208,7 @@ def test_views_a_repair_left_out_get_the_fill_round_once_then_the_pose_guided_on
 
     from sara.config import make_config
     from sara.pairs.sara import rounds as sara_source
+    monkeypatch.setattr(sara_source, "_fully_scored", lambda ctx, views: set(views))
 
     registered = {"a", "b", "c"}
     monkeypatch.setattr(sara_source.colmap, "registered_images", lambda model_dir: set(registered))
@@ -271,6 +278,7 @@ def test_after_the_fill_one_more_repair_then_the_pose_guided_round(tmp_path: Pat
 
     from sara.config import make_config
     from sara.pairs.sara import rounds as sara_source
+    monkeypatch.setattr(sara_source, "_fully_scored", lambda ctx, views: set(views))
 
     registered = {"a", "b", "c"}
     monkeypatch.setattr(sara_source.colmap, "registered_images", lambda model_dir: set(registered))
@@ -345,3 +353,23 @@ def test_a_round_whose_mapping_holds_fewer_views_keeps_the_model_it_started_from
     assert len(colmap.registered_images(out / "sparse" / "0")) == max(views_after, 8)
     assert record["outputs"]["sparse"] == mapping.model_digest(out / "sparse")  # not seen as damaged on a re-run
     assert not (out / ".sara" / pipeline_rounds.BEFORE_ROUND).exists()
+
+
+def test_fully_scored_views_are_those_with_no_more_keypoints_than_the_scorer_uses(tmp_path: Path):
+    from types import SimpleNamespace
+
+    import h5py
+    import numpy as np
+
+    from sara.config import make_config
+    from sara.io.h5 import Features, write_features
+    from sara.pairs.sara import rounds as sara_rounds
+
+    path = tmp_path / "features.h5"
+    with h5py.File(path, "w") as h5:
+        for name, num in (("few.png", 200), ("edge.png", 1024), ("many.png", 5000)):
+            write_features(h5, name, Features(np.zeros((num, 2), np.float32), np.zeros((num, 128), np.float32),
+                                              np.ones(num, np.float32), (640, 480)))
+    ctx = SimpleNamespace(features_path=path, conf=make_config("sift-offline"))
+    assert ctx.conf.score.num_keypoints == 1024
+    assert sara_rounds._fully_scored(ctx, {"few.png", "edge.png", "many.png"}) == {"few.png", "edge.png"}

@@ -107,6 +107,12 @@ class FeatureCache:
         self.close()
 
 
+def keypoint_counts(path: Path, names: list[str]) -> dict[str, int]:
+    """How many keypoints each of `names` has in an HDF5 feature file (read from the dataset's shape)."""
+    with h5py.File(path, "r") as h5:
+        return {name: int(h5[name]["keypoints"].shape[0]) for name in names}
+
+
 def groups_holding(h5: h5py.File, dataset: str) -> list[str]:
     """Sorted names of the groups that hold `dataset` (nested groups joined with '/'): image names."""
     names: list[str] = []

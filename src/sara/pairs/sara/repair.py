@@ -51,18 +51,24 @@ def left_out_views(names: list[str], pairs: list[Pair], main: set[str]) -> list[
 
 def repair_pairs(scores_csv: Path, pairs: list[Pair], main: set[str], left_out: list[str],
                  per_view: int, rescore: Callable[[list[Pair]], dict[Pair, int]] | None = None,
-                 min_inliers: int = 0) -> list[Pair]:
+                 min_inliers: int = 0, fully_scored: set[str] | None = None) -> list[Pair]:
     """For each left-out view, its best unselected candidates into the main model: by the RANSAC
     pose's inliers among all mutual matches (`num_inliers_all`, which does not saturate at the b
     best matches and predicts a full matching's inliers better).
 
     `rescore(pairs)` gives that count anew for the candidates of the left-out views (pair -> inliers;
-    the round's ratio-tested scoring); a pair it leaves out keeps its first score. A candidate whose
-    count is under `min_inliers` (the round passes the verification's own minimum) is not taken: its
-    matching would not verify, and a pair spent on it is a pair the fill round after a stalled repair
-    no longer has. On a low-texture turntable (211 SIFT keypoints per image, 47 views) 43 of a
-    repair's 62 pairs were such candidates (ratio-tested counts up to 25 for pairs that do not verify,
-    at least 41 for nine in ten that do), none verified, and the repair used up the room of the cap."""
+    the round's ratio-tested scoring); a pair it leaves out keeps its first score.
+
+    A candidate between two `fully_scored` views (None: every view) whose count is under
+    `min_inliers` (the round passes verification's own minimum) is not taken. The scorer saw every
+    keypoint of such views (no more than its `score.num_keypoints`), so its count is what matching
+    will find, up to RANSAC: the pair would not verify, and a pair spent on it is one the fill round
+    after a stalled repair no longer has. On a low-texture turntable (211 SIFT keypoints per image, 47
+    views) 43 of a repair's 62 pairs were such candidates, none verified (ratio-tested counts up to
+    25 for pairs that do not verify, at least 41 for nine in ten of those that do), and the repair
+    used up the cap's room. Where the scorer saw a fraction of the keypoints the counts say little: on
+    an orbit video picked sparsely (mold50, thousands of keypoints per image) links counted 6-14
+    verified with 16-119 inliers, and the repair needs them."""
     chosen = {tuple(sorted(p)) for p in pairs}
     targets = set(left_out)
     found: list[tuple[str, int, Pair]] = []
@@ -83,7 +89,7 @@ def repair_pairs(scores_csv: Path, pairs: list[Pair], main: set[str], left_out: 
             count = int(scores.num_inliers_all[k])
         else:
             continue
-        if count >= min_inliers:
+        if count >= min_inliers or (fully_scored is not None and not fully_scored.issuperset(pair)):
             options[view].append((count, pair))
     extra: list[Pair] = []
     for view in left_out:

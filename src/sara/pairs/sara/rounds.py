@@ -22,6 +22,7 @@ import numpy as np
 
 from ... import colmap, selection
 from ...io import fingerprint, records
+from ...io.h5 import keypoint_counts
 from ...io.pairs import Pair
 from ...io.scores import read_scores_csv
 from .. import NoRounds, PairContext, Round
@@ -103,7 +104,8 @@ def _repair_round(ctx: PairContext, pairs: list[Pair], main: set[str], left_out:
     one of each per view in turn, so that a short room still reaches every view."""
     per_view = ctx.conf.rounds.repair_pairs_per_view
     own = repair_pairs(ctx.out_dir / SCORES_NAME, pairs, main, left_out, per_view, rescore=_ratio_rescore(ctx),
-                       min_inliers=ctx.conf.match.min_num_inliers)
+                       min_inliers=ctx.conf.match.min_num_inliers,
+                       fully_scored=_fully_scored(ctx, main | set(left_out)))
     own_by_view: dict[str, list[Pair]] = {v: [] for v in left_out}
     targets = set(left_out)
     for pair in own:
@@ -120,6 +122,12 @@ def _repair_round(ctx: PairContext, pairs: list[Pair], main: set[str], left_out:
     logger.info("repair: %d pairs into the main model, %d between the left-out views' neighbours in it",
                 len(taken) - num_near, num_near)
     return sorted(taken)
+
+
+def _fully_scored(ctx: PairContext, views: set[str]) -> set[str]:
+    """The `views` whose every keypoint the scorer used (no more than `score.num_keypoints`)."""
+    counts = keypoint_counts(ctx.features_path, sorted(views))
+    return {view for view, num in counts.items() if num <= ctx.conf.score.num_keypoints}
 
 
 def _ratio_rescore(ctx: PairContext) -> Callable[[list[Pair]], dict[Pair, int]] | None:
