@@ -164,10 +164,10 @@ def test_low_texture_is_said_before_matching_with_the_backend_to_try():
     assert "251 keypoints per image" in text and "--preset aliked-lightglue" in text
     assert advice.low_texture({"num_images": 48, "keypoints_mean": 4000.0}, "sift") == ""
     assert advice.low_texture({"num_images": 48, "keypoints_mean": 251.0}, "aliked") == ""
-    assert "focal length is a guess" not in text  # EXIF gave it (no focal check in the record)
+    assert "camera is a guess" not in text  # EXIF gave it (no focal check in the record)
     guessed = {"prior_px": 384.0, "estimated_px": 80.0, "applied": False, "sound": False}
     text = advice.low_texture({"num_images": 47, "keypoints_mean": 211.0, "focal": guessed}, "sift")
-    assert "focal length is a guess (384 px" in text and "extract.camera_params" in text
+    assert "camera is a guess (focal length 384 px" in text and "extract.camera_params" in text
     applied = {**guessed, "estimated_px": 1500.0, "applied": True}
     assert "a guess" not in advice.low_texture({"num_images": 47, "keypoints_mean": 211.0, "focal": applied}, "sift")
 

@@ -14,8 +14,9 @@ LOW_TEXTURE_KEYPOINTS = 500
 
 def low_texture(extract_info: dict[str, Any], backend: str) -> str:
     """A warning when SIFT starved on these images (empty when it did not, or for learned features); when
-    the focal length is COLMAP's guess (no EXIF, sara's check not applied), the advice to give it: there
-    the sparse graph does not survive a wrong focal length (lab/notes/CAPTURES.md, sections 21-22)."""
+    the focal length is COLMAP's guess (no EXIF, sara's check not applied), the advice to give the camera's
+    intrinsics: there the sparse graph does not survive a wrong camera, the principal point included
+    (lab/notes/CAPTURES.md, sections 21-22)."""
     mean = float(extract_info.get("keypoints_mean") or 0.0)
     if backend != "sift" or not extract_info.get("num_images") or mean >= LOW_TEXTURE_KEYPOINTS:
         return ""
@@ -24,10 +25,11 @@ def low_texture(extract_info: dict[str, Any], backend: str) -> str:
             "find more there: --preset aliked-lightglue (pip install 'sara[learned]')")
     focal = extract_info.get("focal")
     if isinstance(focal, dict) and not focal.get("applied"):
-        text += (f". The focal length is a guess ({focal.get('prior_px', 0):.0f} px: no EXIF, and the images did not "
-                 "tell it): if you know it, give it with -s extract.camera_params=f,cx,cy,k (on a low-texture stand-in "
-                 "under four namings of its files, a guess half the true focal length kept 14 to 47 of 47 views in the "
-                 "main model, the true one all 47 each time)")
+        text += (f". The camera is a guess (focal length {focal.get('prior_px', 0):.0f} px, principal point at the "
+                 "centre: no EXIF, and the images did not tell the focal length): if you know the intrinsics, give "
+                 "them with -s extract.camera_params=f,cx,cy,k (on a low-texture stand-in whose principal point is "
+                 "9 px off the centre, the guess kept 14 to 47 of 47 views in the main model under four namings of its "
+                 "files, the true intrinsics all 47 each time)")
     return text
 
 
