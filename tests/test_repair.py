@@ -355,7 +355,7 @@ def test_a_round_whose_mapping_holds_fewer_views_keeps_the_model_it_started_from
     assert not (out / ".sara" / pipeline_rounds.BEFORE_ROUND).exists()
 
 
-def test_fully_scored_views_are_those_with_no_more_keypoints_than_the_scorer_uses(tmp_path: Path):
+def test_fully_scored_views_have_no_more_keypoints_than_the_scorer_uses_and_a_nearest_neighbour_matcher(tmp_path: Path):
     from types import SimpleNamespace
 
     import h5py
@@ -373,3 +373,8 @@ def test_fully_scored_views_are_those_with_no_more_keypoints_than_the_scorer_use
     ctx = SimpleNamespace(features_path=path, conf=make_config("sift-offline"))
     assert ctx.conf.score.num_keypoints == 1024
     assert sara_rounds._fully_scored(ctx, {"few.png", "edge.png", "many.png"}) == {"few.png", "edge.png"}
+    # LightGlue finds matches the scorer's nearest neighbours miss: no count holds a pair back
+    ctx.conf = make_config("sift-offline", {"extract.backend": "aliked-n16", "match.backend": "auto"})
+    assert sara_rounds._fully_scored(ctx, {"few.png", "edge.png", "many.png"}) == set()
+    ctx.conf = make_config("sift-offline", {"match.backend": "nearest"})
+    assert sara_rounds._fully_scored(ctx, {"few.png", "many.png"}) == {"few.png"}

@@ -25,6 +25,7 @@ from ...io import fingerprint, records
 from ...io.h5 import keypoint_counts
 from ...io.pairs import Pair
 from ...io.scores import read_scores_csv
+from ...matchers import resolve_name
 from .. import NoRounds, PairContext, Round
 from . import pose_guided
 from .budget import PairBudget
@@ -40,6 +41,8 @@ REPAIR_STAGE = "repair_views"
 SUPPORT_STAGE = "support"
 #: record of the fill round's pairs (once per selection)
 FILL_STAGE = "fill"
+#: matchers whose matches are the mutual nearest neighbours the scorer counts (`_fully_scored`)
+NEAREST_NEIGHBOUR_MATCHERS = ("colmap", "nearest")
 
 
 def budget_of(ctx: PairContext) -> PairBudget:
@@ -125,7 +128,11 @@ def _repair_round(ctx: PairContext, pairs: list[Pair], main: set[str], left_out:
 
 
 def _fully_scored(ctx: PairContext, views: set[str]) -> set[str]:
-    """The `views` whose every keypoint the scorer used (no more than `score.num_keypoints`)."""
+    """The `views` whose every keypoint the scorer used (no more than `score.num_keypoints`); none where
+    the matcher is not a nearest-neighbour one: LightGlue finds matches the scorer's nearest
+    neighbours miss, so their count does not tell whether its matching of the pair will verify."""
+    if resolve_name(ctx.conf.match, ctx.conf.extract.backend) not in NEAREST_NEIGHBOUR_MATCHERS:
+        return set()
     counts = keypoint_counts(ctx.features_path, sorted(views))
     return {view for view, num in counts.items() if num <= ctx.conf.score.num_keypoints}
 
