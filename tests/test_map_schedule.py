@@ -117,7 +117,7 @@ def test_a_model_mapped_before_the_setting_existed_is_not_mapped_again():
 
     conf = make_config("sift-offline", {}).map
     added = ("ba_global_growth", "ba_global_refinements", "ba_direct_max_images", "contradicted_remaps",
-             "checkpoint_minutes")
+             "checkpoint_minutes", "refine_distortion")
     before = {k: v for k, v in conf.__dict__.items() if k not in added}
     assert mapping.state_key(conf, 0, "up") == fingerprint({"conf": before, "seed": 0, "upstream": "up"})
     # how often a long mapping keeps its models changes no model: never in the key
@@ -127,3 +127,23 @@ def test_a_model_mapped_before_the_setting_existed_is_not_mapped_again():
                     {"contradicted_remaps": 0}):
         by_hand = dataclasses.replace(conf, **setting)
         assert mapping.state_key(by_hand, 0, "up") != mapping.state_key(conf, 0, "up")
+
+
+@pytest.mark.parametrize("setting, refined", [({}, True), ({"map.refine_distortion": "false"}, False)])
+def test_the_map_stage_hands_whether_distortion_is_refined_to_pycolmap(monkeypatch, tmp_path: Path, setting,
+                                                                       refined):
+    import pycolmap
+
+    from sara import colmap, mapping
+
+    seen: list = []
+
+    def fake_pycolmap_mapping(db, images, out, *, options, input_path, next_image_callback):
+        seen.append(options.ba_refine_extra_params)
+        return {}
+
+    monkeypatch.setattr(pycolmap, "incremental_mapping", fake_pycolmap_mapping)
+    monkeypatch.setattr(colmap, "database_images", lambda db: dict.fromkeys(range(40)))
+    monkeypatch.setattr(colmap, "verified_graph", lambda db, min_inliers: (0, 0, [], 0))
+    mapping._map(make_config("sift-offline", setting).map, tmp_path / "db", tmp_path, tmp_path, 0, False)
+    assert seen and all(value is refined for value in seen)

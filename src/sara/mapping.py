@@ -352,7 +352,7 @@ def _incremental(conf: MapConfig, db_path: Path, images_root: Path, tmp: Path, s
             ba_global_ratio=ba_global_growth(conf, num_images),
             ba_global_refinements=ba_global_refinements(conf, num_images),
             direct_solver_up_to=ba_direct_max_images(conf, num_images), first_image=first_image,
-            checkpoint=checkpoint)
+            checkpoint=checkpoint, refine_extra_params=conf.refine_distortion)
 
 
 def _extend(conf: MapConfig, db_path: Path, images_root: Path, tmp: Path, seed: int, progress: bool,
@@ -427,7 +427,7 @@ def _model_intact(out_dir: Path, sparse: Path) -> bool:
 #: settings added after runs were made: left out of the key at these values, so that a finished
 #: model is not mapped again after an upgrade for a setting it could not have had
 ADDED_LATER: dict[str, Any] = {"ba_global_growth": 0.0, "ba_global_refinements": 0, "ba_direct_max_images": 0,
-                               "contradicted_remaps": 2}
+                               "contradicted_remaps": 2, "refine_distortion": True}
 
 
 #: settings that do not change the model: how often a long mapping keeps its models so far

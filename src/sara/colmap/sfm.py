@@ -61,7 +61,7 @@ def incremental_mapping(
     on_next_image: Callable[[], None] | None = None, input_path: Path | None = None,
     forward_start: bool = False, ba_global_ratio: float | None = None, ba_global_refinements: int | None = None,
     direct_solver_up_to: int | None = None, first_image: str | None = None,
-    checkpoint: stepwise.Checkpoint | None = None,
+    checkpoint: stepwise.Checkpoint | None = None, refine_extra_params: bool = True,
 ) -> MappedModels:
     """COLMAP's incremental mapper; with `input_path` it continues from that model (registers the
     images it lacks, then bundle-adjusts) instead of starting from an empty one.
@@ -81,6 +81,8 @@ def incremental_mapping(
     `direct_solver_up_to` says more).
     `checkpoint`: where the step-by-step mapping keeps its models so far and resumes from them
     (`stepwise.Checkpoint`; COLMAP's own loop has none).
+    `refine_extra_params`: the adjustments refine the cameras' distortion (COLMAP's default); False
+    holds it where it starts.
     """
     opts = pycolmap.IncrementalPipelineOptions()
     if forward_start:
@@ -90,6 +92,7 @@ def incremental_mapping(
     if ba_global_refinements is not None:
         opts.ba_global_max_refinements = ba_global_refinements
     opts.min_model_size = min_model_size
+    opts.ba_refine_extra_params = refine_extra_params
     opts.num_threads = num_threads
     opts.mapper.abs_pose_min_num_inliers = abs_pose_min_num_inliers
     opts.mapper.abs_pose_min_inlier_ratio = abs_pose_min_inlier_ratio

@@ -180,6 +180,12 @@ class MapConfig:
     abs_pose_min_inlier_ratio: float = option(0.1, reals(0, 1, low_open=True), """Registration of a new image
         (PnP): smallest inlier ratio (COLMAP's default: 0.25).""")
     num_threads: int = option(-1, threads(), "COLMAP's mapping threads; -1: every core.")
+    refine_distortion: bool = option(True, flag(), """Incremental mapper: refine the cameras' distortion
+        (COLMAP's ba_refine_extra_params) while mapping. false holds it at its start (0 without
+        calibration) where few points pin it down: on a low-texture stand-in whose principal point is
+        9 px off the centre the refined radial term ran to -0.7 to -1.6, and its first models broke into
+        pieces (7-26 of 47 views in the largest, SARA's pairs and exhaustive matching's alike); held,
+        every mapping of the same databases kept all 47 views in one model.""")
     contradicted_remaps: int = option(2, ints(0), """Incremental mapper: when more than 0.5% of the verified
         pairs between the first model's views, or at least 20 of them, contradict it (their matches lie
         over 4 px off its epipolar lines: a model bent where the views pass a place twice), map again at
