@@ -168,6 +168,7 @@ def test_low_texture_is_said_before_matching_with_the_backend_to_try():
     guessed = {"prior_px": 384.0, "estimated_px": 80.0, "applied": False, "sound": False}
     text = advice.low_texture({"num_images": 47, "keypoints_mean": 211.0, "focal": guessed}, "sift")
     assert "camera is a guess (focal length 384 px" in text and "extract.camera_params" in text
+    assert "-s map.refine_distortion=false" in text
     applied = {**guessed, "estimated_px": 1500.0, "applied": True}
     assert "a guess" not in advice.low_texture({"num_images": 47, "keypoints_mean": 211.0, "focal": applied}, "sift")
 
