@@ -19,21 +19,10 @@ from pathlib import Path
 
 import numpy as np
 import pycolmap
+from sweep_standin import write_truth  # this folder's: run as a script
 
 from sara.colmap.refine import triangulate_and_adjust
-
-
-def similarity(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
-    """(s, R, t) with dst ~ s R src + t, least squares (Umeyama)."""
-    mu_s, mu_d = src.mean(0), dst.mean(0)
-    S, D = src - mu_s, dst - mu_d
-    U, sig, Vt = np.linalg.svd(D.T @ S / len(src))
-    E = np.eye(3)
-    if np.linalg.det(U @ Vt) < 0:
-        E[2, 2] = -1
-    R = U @ E @ Vt
-    s = float(np.trace(np.diag(sig) @ E) / ((S**2).sum() / len(src)))
-    return s, R, mu_d - s * R @ mu_s
+from sara.evaluation.metrics import umeyama_similarity
 
 
 def image_line(image_id: int, camera_id: int, name: str, R: np.ndarray, t: np.ndarray) -> str:
@@ -46,7 +35,7 @@ def merged_poses(a: pycolmap.Reconstruction, b: pycolmap.Reconstruction, db: Pat
     in_a = {im.name: im for im in a.images.values() if im.has_pose}
     in_b = {im.name: im for im in b.images.values() if im.has_pose}
     shared = sorted(set(in_a) & set(in_b))
-    s, R, t = similarity(np.array([in_b[n].projection_center() for n in shared]),
+    s, R, t = umeyama_similarity(np.array([in_b[n].projection_center() for n in shared]),
                          np.array([in_a[n].projection_center() for n in shared]))
     moved = s * (R @ np.array([in_b[n].projection_center() for n in shared]).T).T + t
     error = np.linalg.norm(moved - np.array([in_a[n].projection_center() for n in shared]), axis=1)
@@ -67,10 +56,8 @@ def merged_poses(a: pycolmap.Reconstruction, b: pycolmap.Reconstruction, db: Pat
     shutil.rmtree(out, ignore_errors=True)
     out.mkdir(parents=True)
     params = " ".join(map(str, camera.params))
-    size = f"{camera.width} {camera.height}"
-    (out / "cameras.txt").write_text(f"{camera.camera_id} {camera.model.name} {size} {params}\n")
-    (out / "images.txt").write_text("".join(line for _, line in sorted(lines)))
-    (out / "points3D.txt").write_text("")
+    write_truth(out, [f"{camera.camera_id} {camera.model.name} {camera.width} {camera.height} {params}"],
+                [line for _, line in sorted(lines)])
 
 
 def main() -> None:

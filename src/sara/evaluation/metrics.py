@@ -141,15 +141,15 @@ def _pair_blocks(num: int, block_pairs: int) -> Iterator[tuple[np.ndarray, np.nd
     """The pairs (i, j), i < j < num, in the order of ``np.triu_indices(num, 1)``, as index arrays of
     whole rows i holding about `block_pairs` pairs each (at least one row)."""
     counts = np.arange(num - 1, 0, -1)  # pairs of row i: num - 1 - i
+    before = np.concatenate([[0], np.cumsum(counts)])  # pairs of the rows before row i
     start = 0
     while start < num - 1:
-        stop = start + max(1, int(np.searchsorted(np.cumsum(counts[start:]), block_pairs, side="right")))
-        rows = np.arange(start, min(stop, num - 1))
-        per_row = counts[rows]
-        first = np.repeat(rows, per_row)
-        offsets = np.arange(len(first)) - np.repeat(np.cumsum(per_row) - per_row, per_row)
+        stop = min(max(start + 1, int(np.searchsorted(before, before[start] + block_pairs, side="right")) - 1), num - 1)
+        rows = np.arange(start, stop)
+        first = np.repeat(rows, counts[rows])
+        offsets = np.arange(len(first)) - np.repeat(before[rows] - before[start], counts[rows])
         yield first, first + 1 + offsets
-        start = int(rows[-1]) + 1
+        start = stop
 
 
 def pose_auc(
