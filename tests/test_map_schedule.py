@@ -147,3 +147,68 @@ def test_the_map_stage_hands_whether_distortion_is_refined_to_pycolmap(monkeypat
     monkeypatch.setattr(colmap, "verified_graph", lambda db, min_inliers: (0, 0, [], 0))
     mapping._map(make_config("sift-offline", setting).map, tmp_path / "db", tmp_path, tmp_path, 0, False)
     assert seen and all(value is refined for value in seen)
+
+
+class _Rec:
+    """A stand-in for a pycolmap model: only its size."""
+
+    def __init__(self, n: int):
+        self.n = n
+
+    def num_reg_images(self) -> int:
+        return self.n
+
+
+@pytest.mark.parametrize("setting, refined, held, expected_calls, kept", [
+    # (forward start, distortion refined) of each mapping
+    ({}, 14, 47, [(False, True), (True, True), (False, False)], 47),  # could not grow; held holds all: kept
+    ({}, 14, 10, [(False, True), (True, True), (False, False)], 14),  # held holds fewer: the first kept
+    ({}, 30, 47, [(False, True)], 30),                                # over half the joined views: no retry
+    ({"map.refine_distortion": "false"}, 47, 14, [(False, False), (True, False)], 14),  # held already
+])
+def test_a_first_model_that_could_not_grow_is_mapped_again_with_the_distortion_held(
+        monkeypatch, tmp_path: Path, setting, refined, held, expected_calls, kept):
+    """The low-texture stand-in: the refined radial term ran away and the first models held 7-16 of
+    47 views; with it held, 47. The retry runs where the forward retry does (under half the joined
+    views), and its model replaces the first only when it holds more views."""
+    from sara import colmap, mapping
+    from sara.colmap.sfm import MappedModels
+
+    calls: list[tuple[bool, bool]] = []
+
+    def fake_mapping(*args, refine_extra_params=True, forward_start=False, **kwargs):
+        calls.append((forward_start, refine_extra_params))
+        return MappedModels({0: _Rec(refined if refine_extra_params else held)})
+
+    monkeypatch.setattr(colmap, "incremental_mapping", fake_mapping)
+    monkeypatch.setattr(colmap, "database_images", lambda db: dict.fromkeys(range(47)))
+    monkeypatch.setattr(MappedModels, "agreement", lambda self, db, n: colmap.Agreement(0))
+    monkeypatch.setattr(colmap, "verified_graph", lambda db, min_inliers: (200, 47, [47], 100))
+    recs, _, _ = mapping._map(make_config("sift-offline", setting).map, tmp_path / "db", tmp_path, tmp_path, 0, False)
+    assert calls == expected_calls
+    assert recs.largest == kept
+    assert recs.distortion_held == (calls[-1] == (False, False) and kept == held and not setting)
+
+
+def test_the_rounds_continue_a_model_mapped_with_the_distortion_held_with_it_held(monkeypatch, tmp_path: Path):
+    """The map stage records that its model was mapped with the distortion held; a continuation of
+    that model (the rounds' mappings) holds it too, and the record keeps saying so."""
+    from sara import mapping
+    from sara.colmap.sfm import MappedModels
+    from sara.io import records
+
+    conf = make_config("sift-offline", {}).map
+    seen: list[bool] = []
+
+    def fake_extend(conf, db_path, images_root, tmp, seed, progress, input_model, min_num_inliers):
+        seen.append(conf.refine_distortion)
+        return MappedModels({0: _Rec(5)}), 5, 0.1
+
+    monkeypatch.setattr(mapping, "_extend", fake_extend)
+    monkeypatch.setattr(MappedModels, "write_by_size", lambda self, folder: [5])
+    for held in (True, False):
+        out = tmp_path / str(held)
+        records.mark_done(out, mapping.STAGE, "before", {"mapper": "incremental", "distortion_held": held})
+        mapping.run(conf, tmp_path / "db", tmp_path, out, input_model=tmp_path / "model", progress=False)
+        assert seen[-1] is not held
+        assert records.done_info(out, mapping.STAGE)["distortion_held"] is held

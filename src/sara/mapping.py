@@ -23,9 +23,10 @@ from tqdm import tqdm
 
 from . import colmap
 from .colmap import refine as colmap_refine
-from .colmap.stepwise import DIRECT_SOLVER_MAX_IMAGES, Checkpoint
+from .colmap.stepwise import Checkpoint
 from .config import MapConfig
 from .io import DamagedOutputError, NoResultError, fingerprint, records, without_added_later
+from .map_schedule import ba_direct_max_images, ba_global_growth, ba_global_refinements
 from .model_files import colmap_models, model_digest, recover, swap_in  # noqa: F401 (the stage's model folders)
 
 logger = logging.getLogger(__name__)
@@ -56,6 +57,8 @@ def run(conf: MapConfig, db_path: Path, images_root: Path, out_dir: Path, *, see
     previous = records.read_record(out_dir, STAGE)
     # the incremental mapper continues its own models, and those it built for a contradicted global one
     extend = input_model is not None and "incremental" in (conf.mapper, _mapped_by(previous))
+    held = extend and bool(((previous or {}).get("info") or {}).get("distortion_held"))
+    conf = replace(conf, refine_distortion=conf.refine_distortion and not held)  # as the model continued was mapped
     records.mark_started(out_dir, STAGE, key)
     checkpoint = Checkpoint(out_dir / ".sara" / CHECKPOINT, key, conf.checkpoint_minutes * 60) \
         if conf.checkpoint_minutes > 0 and not extend else None
@@ -88,7 +91,7 @@ def run(conf: MapConfig, db_path: Path, images_root: Path, out_dir: Path, *, see
     swap_in(tmp, sparse)
     info = {"time_s": elapsed, "num_components": len(sizes), "component_sizes": sizes,
             "num_registered": sizes[0], "num_images": num_images, "forward_start": recs.forward_start,
-            "continued": extend, "mapper": recs.mapper or conf.mapper}
+            "continued": extend, "mapper": recs.mapper or conf.mapper, "distortion_held": held or recs.distortion_held}
     info.update(_first_model_check(recs, previous if info["continued"] else None))
     records.mark_done(out_dir, STAGE, key, info, outputs={"sparse": model_digest(sparse)})
     if checkpoint is not None:
@@ -133,6 +136,9 @@ def _map(conf: MapConfig, db_path: Path, images_root: Path, tmp: Path, seed: int
         if input_model is None:
             recs = _forward_start(conf, db_path, images_root, tmp, seed, progress, num_images, recs,
                                   min_num_inliers, checkpoint)
+            recs = _distortion_held(conf, db_path, images_root, tmp, seed, progress, num_images, recs,
+                                    min_num_inliers, checkpoint)
+            conf = replace(conf, refine_distortion=conf.refine_distortion and not recs.distortion_held)
             recs = _agreeing(conf, db_path, images_root, tmp, seed, progress, num_images, recs, min_num_inliers,
                              checkpoint)
     elif conf.mapper == "global":
@@ -162,6 +168,37 @@ def _global(conf: MapConfig, db_path: Path, images_root: Path, tmp: Path, seed: 
                        checkpoint=checkpoint.derived("incremental") if checkpoint else None)
     again.mapper = "incremental"
     return again if _better(again, again.agreement_check, recs, recs.agreement_check) else recs
+
+
+def _distortion_held(conf: MapConfig, db_path: Path, images_root: Path, tmp: Path, seed: int, progress: bool,
+                     num_images: int, first: colmap.MappedModels, min_num_inliers: int,
+                     checkpoint: Checkpoint | None = None) -> colmap.MappedModels:
+    """Map again with the cameras' distortion held, when it was refined and the first model still holds
+    less than `FORWARD_RETRY_SHARE` of the views joined by verified pairs; keeps the mapping whose
+    largest model holds more views (`_better`), and the models' continuations hold it too (`run`).
+
+    Where few points pin the lens down, the adjustments can bend it to make up for a wrong guess of
+    the camera: on a low-texture stand-in (211 keypoints per image, its principal point 9 px off the
+    centre) the radial term ran to -0.7 to -1.6 in every piece and the first models held 7-16 of 47
+    views; held, all 47 in one model under each of four namings (lab/notes/CAPTURES.md, 23-24)."""
+    if not conf.refine_distortion or first.largest == 0:
+        return first
+    reachable = max(colmap.verified_graph(db_path, min_num_inliers)[2], default=0)
+    if first.largest >= FORWARD_RETRY_SHARE * reachable:
+        return first
+    logger.info("map: the first model holds %d of the %d views joined by verified pairs: mapping again with the "
+                "lens distortion held (map.refine_distortion)", first.largest, reachable)
+    folder = tmp / "distortion-held"
+    folder.mkdir()
+    again = _incremental(replace(conf, refine_distortion=False), db_path, images_root, folder, seed, progress,
+                         num_images, None, forward_start=first.forward_start,
+                         checkpoint=checkpoint.derived(folder.name) if checkpoint else None)
+    again.forward_start, again.distortion_held = first.forward_start, True
+    if not _better(again, again.agreement(db_path, min_num_inliers), first, first.agreement(db_path, min_num_inliers)):
+        return first
+    logger.warning("map: with the lens distortion held the largest model holds %d views (refined: %d); kept, "
+                   "and held in the rounds' mappings too", again.largest, first.largest)
+    return again
 
 
 #: a first model holding less than this share of the views that verified pairs join is a start
@@ -250,6 +287,7 @@ def _agreeing(conf: MapConfig, db_path: Path, images_root: Path, tmp: Path, seed
                              progress, num_images, None, forward_start=first.forward_start, first_image=start,
                              checkpoint=checkpoint.derived(folder.name, f"{start}") if checkpoint else None)
         again.forward_start, again.seed = first.forward_start, seed + remaps
+        again.distortion_held = first.distortion_held
         check = again.agreement(db_path, min_num_inliers)
         logger.warning("map: under seed %d the largest model holds %d views, %d of %d pairs contradict it",
                        seed + remaps, again.largest, len(check.contradicted), check.checked)
@@ -288,56 +326,6 @@ def _better(new: colmap.MappedModels, new_check: colmap.Agreement, old: colmap.M
         return model.largest > 0, sound, model.largest, -len(check.contradicted)
 
     return rank(new, new_check, old, old_check) > rank(old, old_check, new, new_check)
-
-
-#: scenes of at least this many images are adjusted as a whole less often (`map.ba_global_growth` 0)
-LARGE_SCENE_IMAGES = 500
-#: the growth between two global adjustments from LARGE_SCENE_IMAGES on; COLMAP's is 1.1
-LARGE_SCENE_BA_GROWTH = 1.4
-#: the most refinement rounds of a global adjustment from LARGE_SCENE_IMAGES on; COLMAP's is 5
-LARGE_SCENE_BA_REFINEMENTS = 1
-#: from this many images sara drives the mapper step by step (`map.ba_direct_max_images` 0); COLMAP's
-#: global adjustments switch to Ceres' iterative solver above it
-STEPWISE_IMAGES = 1000
-
-
-def ba_global_growth(conf: MapConfig, num_images: int) -> float | None:
-    """The growth of the model between two global bundle adjustments; None keeps COLMAP's 1.1.
-
-    COLMAP adjusts the whole model each time its views or points grew by 10%: about
-    ln(N / N0) / ln(1.1) adjustments of a growing model, costing about 11 adjustments of the final
-    one. On the 1,000-image synthetic world every 40% instead cut the mapping by 18-38% (five mappings
-    of three graphs) for the same views and AUC (lab/notes/SCALE.md). Below 500 images COLMAP's
-    schedule stays: the shared scenes were measured with it."""
-    if conf.ba_global_growth > 0:
-        return conf.ba_global_growth
-    return LARGE_SCENE_BA_GROWTH if num_images >= LARGE_SCENE_IMAGES else None
-
-
-def ba_global_refinements(conf: MapConfig, num_images: int) -> int | None:
-    """The most refinement rounds of each global bundle adjustment; None keeps COLMAP's 5.
-
-    Each global adjustment of COLMAP's incremental mapper adjusts, re-triangulates and filters up to
-    5 times, until under 0.05% of the observations change. Past about 1,000 registered views one
-    adjustment of the 3,000-image synthetic world took minutes (lab/notes/SCALE.md); on the
-    1,000-image world one round gave the same views and AUC to 0.0001 (two graphs); its 7-9% less
-    time there is within the machine's run-to-run spread, so no gain is claimed.
-    Below 500 images COLMAP's 5 stay: the shared scenes were measured with them."""
-    if conf.ba_global_refinements > 0:
-        return conf.ba_global_refinements
-    return LARGE_SCENE_BA_REFINEMENTS if num_images >= LARGE_SCENE_IMAGES else None
-
-
-def ba_direct_max_images(conf: MapConfig, num_images: int) -> int | None:
-    """The largest model whose global adjustments use Ceres' direct sparse solver, for sara's
-    step-by-step mapping (`colmap.stepwise`); None: COLMAP's own loop (direct up to 1,000 images).
-
-    On a converged 992-view model of the 1,000-image synthetic world, one global adjustment took
-    6.8 s with the direct solver and 103.5 s with the iterative one COLMAP uses above 1,000 images,
-    to the same reprojection error (lab/notes/SCALE.md)."""
-    if conf.ba_direct_max_images > 0:
-        return conf.ba_direct_max_images
-    return DIRECT_SOLVER_MAX_IMAGES if num_images >= STEPWISE_IMAGES else None
 
 
 def _incremental(conf: MapConfig, db_path: Path, images_root: Path, tmp: Path, seed: int, progress: bool,
