@@ -185,7 +185,9 @@ class MapConfig:
         calibration) where few points pin it down: on a low-texture stand-in whose principal point is
         9 px off the centre the refined radial term ran to -0.7 to -1.6, and its first models broke into
         pieces (7-26 of 47 views in the largest, SARA's pairs and exhaustive matching's alike); held,
-        every mapping of the same databases kept all 47 views in one model.""")
+        every mapping of the same databases kept all 47 views in one model. true: a first model that
+        holds under half the views the verified pairs join is mapped again with it held, and that
+        mapping is kept (and its continuations hold it) when its largest model holds more views.""")
     contradicted_remaps: int = option(2, ints(0), """Incremental mapper: when more than 0.5% of the verified
         pairs between the first model's views, or at least 20 of them, contradict it (their matches lie
         over 4 px off its epipolar lines: a model bent where the views pass a place twice), map again at
