@@ -126,9 +126,10 @@ def test_the_mapper_starts_from_forward_motion_when_nothing_else_starts(monkeypa
 
 
 @pytest.mark.parametrize("first, joined, forward, expected", [
-    (2, 51, 51, [False, True, 51]),   # a start that could not grow (kitti-seq1, seed 0): mapped again, kept
-    (5, 51, 3, [False, True, False, 5]),  # the retry holds fewer views: the first kept (and then
-                                          # mapped with the distortion held: test_map_schedule.py)
+    (2, 51, 51, [False, False, True, 51]),  # a start that could not grow (kitti-seq1, seed 0): the distortion
+                                            # held first (no more views), then a forward pair: kept
+    (5, 51, 3, [False, False, True, 5]),  # the retry holds fewer views: the first kept (before it,
+                                          # the distortion held: test_map_schedule.py)
     (30, 51, 51, [False, 30]),        # more than half the joined views: no retry
 ])
 def test_a_first_model_far_smaller_than_the_joined_views_is_mapped_again_from_a_forward_pair(

@@ -134,11 +134,11 @@ def _map(conf: MapConfig, db_path: Path, images_root: Path, tmp: Path, seed: int
         recs = _incremental(conf, db_path, images_root, tmp, seed, progress, num_images, input_model,
                             checkpoint=checkpoint)
         if input_model is None:
-            recs = _forward_start(conf, db_path, images_root, tmp, seed, progress, num_images, recs,
-                                  min_num_inliers, checkpoint)
             recs = _distortion_held(conf, db_path, images_root, tmp, seed, progress, num_images, recs,
                                     min_num_inliers, checkpoint)
             conf = replace(conf, refine_distortion=conf.refine_distortion and not recs.distortion_held)
+            recs = _forward_start(conf, db_path, images_root, tmp, seed, progress, num_images, recs,
+                                  min_num_inliers, checkpoint)
             recs = _agreeing(conf, db_path, images_root, tmp, seed, progress, num_images, recs, min_num_inliers,
                              checkpoint)
     elif conf.mapper == "global":
@@ -173,9 +173,10 @@ def _global(conf: MapConfig, db_path: Path, images_root: Path, tmp: Path, seed: 
 def _distortion_held(conf: MapConfig, db_path: Path, images_root: Path, tmp: Path, seed: int, progress: bool,
                      num_images: int, first: colmap.MappedModels, min_num_inliers: int,
                      checkpoint: Checkpoint | None = None) -> colmap.MappedModels:
-    """Map again with the cameras' distortion held, when it was refined and the first model still holds
-    less than `FORWARD_RETRY_SHARE` of the views joined by verified pairs; keeps the mapping whose
-    largest model holds more views (`_better`), and the models' continuations hold it too (`run`).
+    """Map again with the cameras' distortion held, when it was refined and the first model holds less
+    than `FORWARD_RETRY_SHARE` of the views joined by verified pairs; keeps the mapping whose largest
+    model holds more views (`_better`), and the retries and continuations after it hold it too. Before
+    the forward retry: where holding the distortion lets the model grow, that mapping is saved.
 
     Where few points pin the lens down, the adjustments can bend it to make up for a wrong guess of
     the camera: on a low-texture stand-in (211 keypoints per image, its principal point 9 px off the
@@ -191,9 +192,8 @@ def _distortion_held(conf: MapConfig, db_path: Path, images_root: Path, tmp: Pat
     folder = tmp / "distortion-held"
     folder.mkdir()
     again = _incremental(replace(conf, refine_distortion=False), db_path, images_root, folder, seed, progress,
-                         num_images, None, forward_start=first.forward_start,
-                         checkpoint=checkpoint.derived(folder.name) if checkpoint else None)
-    again.forward_start, again.distortion_held = first.forward_start, True
+                         num_images, None, checkpoint=checkpoint.derived(folder.name) if checkpoint else None)
+    again.distortion_held = True
     if not _better(again, again.agreement(db_path, min_num_inliers), first, first.agreement(db_path, min_num_inliers)):
         return first
     logger.warning("map: with the lens distortion held the largest model holds %d views (refined: %d); kept, "
@@ -231,7 +231,7 @@ def _forward_start(conf: MapConfig, db_path: Path, images_root: Path, tmp: Path,
                          checkpoint=checkpoint.derived("forward") if checkpoint else None)
     if again.largest <= first.largest:
         return first
-    again.forward_start = True
+    again.forward_start, again.distortion_held = True, first.distortion_held
     return again
 
 

@@ -29,9 +29,9 @@ def low_texture(extract_info: dict[str, Any], backend: str) -> str:
                  "centre: no EXIF, and the images did not tell the focal length): if you know the intrinsics, give "
                  "them with -s extract.camera_params=f,cx,cy,k (on a low-texture stand-in whose principal point is "
                  "9 px off the centre, the guess kept 14 to 47 of 47 views in the main model under four namings of its "
-                 "files, the true intrinsics all 47 each time); if you do not, sara maps again with the lens distortion "
-                 "held when the first model holds under half the views (there: all 47 views in one model under each "
-                 "naming), and -s map.refine_distortion=false holds it from the start")
+                 "files, the true intrinsics all 47 each time); if you do not, sara maps again with the lens "
+                 "distortion held when the first model holds under half the views (there: all 47 views in one model "
+                 "under each naming), and -s map.refine_distortion=false holds it from the start")
     return text
 
 
