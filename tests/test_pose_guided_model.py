@@ -405,3 +405,38 @@ def test_the_adjustment_after_re_triangulation_is_capped_too(model: Path, tmp_pa
     assert seen == [refine.REFINE_BA_MAX_ITERATIONS] * 2
     assert counts["observations_added"] == 7.0 and counts["num_points3d"] > 0
     assert (tmp_path / "out" / "images.bin").exists()
+
+
+@pytest.mark.parametrize("refine_distortion", [True, False])
+def test_the_refinement_holds_the_distortion_where_the_mapper_held_it(model: Path, tmp_path: Path,
+                                                                      refine_distortion: bool):
+    """A model mapped with the distortion held (`stages.map.distortion_held`) keeps it through the
+    refinement's adjustment; otherwise the adjustment refines it (here towards the images' none)."""
+    start = tmp_path / "start"
+    start.mkdir()
+    rec = pycolmap.Reconstruction(str(model / "sparse" / "0"))
+    for camera in rec.cameras.values():
+        camera.params = [*camera.params[:3], 0.05]  # SIMPLE_RADIAL: f, cx, cy, k
+    rec.write(str(start))
+    triangulate_and_adjust(start, model / "database.db", model / "images", tmp_path / "out",
+                           refine_distortion=refine_distortion)
+    after = [camera.params[3] for camera in pycolmap.Reconstruction(str(tmp_path / "out")).cameras.values()]
+    if refine_distortion:
+        assert all(abs(k) < 0.05 for k in after)
+    else:
+        assert after == pytest.approx([0.05] * len(after), abs=1e-12)
+
+
+def test_the_pose_guided_round_reads_whether_the_mapper_held_the_distortion(tmp_path: Path):
+    from sara import mapping
+    from sara.io import records
+
+    def ctx(settings: dict) -> PairContext:
+        return PairContext(names=[], features_path=tmp_path / "f.h5", out_dir=tmp_path, db_path=tmp_path / "db",
+                           images_root=tmp_path, conf=make_config("sift-offline", settings))
+
+    records.mark_done(tmp_path, mapping.STAGE, "k", {"distortion_held": False})
+    assert round_.distortion_refined(ctx({}))
+    assert not round_.distortion_refined(ctx({"map.refine_distortion": "false"}))
+    records.mark_done(tmp_path, mapping.STAGE, "k", {"distortion_held": True})
+    assert not round_.distortion_refined(ctx({}))

@@ -124,46 +124,47 @@ def triangulate_new_matches(model_dir: Path, db_path: Path, image_dir: Path, out
 
 def triangulate_and_adjust(model_dir: Path, db_path: Path, image_dir: Path, out_dir: Path, *,
                            num_threads: int = -1, seed: int = 0, features_path: Path | None = None,
-                           extension: TrackExtension | None = None) -> dict[str, float]:
+                           extension: TrackExtension | None = None, refine_distortion: bool = True) -> dict[str, float]:
     """Re-triangulate every match of the database with the model's poses fixed, then bundle-adjust all.
 
     COLMAP's point triangulator (`pycolmap.triangulate_points`: triangulation, track merging and
     completion, re-triangulation, with the poses held constant), then a global bundle adjustment of
     poses and points (focal length and radial distortion refined, principal point fixed, as in
-    COLMAP's mapper); with `extension`, the tracks are then extended (`extend_tracks`, keypoints
-    and descriptors of `features_path`) and adjusted once more. Writes the result to `out_dir`
-    (replaced); returns counts.
+    COLMAP's mapper; the distortion held with `refine_distortion` False); with `extension`, the
+    tracks are then extended (`extend_tracks`, keypoints and descriptors of `features_path`) and
+    adjusted once more. Writes the result to `out_dir` (replaced); returns counts.
     """
     out_dir = Path(out_dir)
     tmp = out_dir.with_name(out_dir.name + ".partial")
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
     rec = _triangulate(model_dir, db_path, image_dir, tmp, clear_points=True, num_threads=num_threads, seed=seed)
-    adjust_refined(rec)
+    adjust_refined(rec, refine_distortion=refine_distortion)
     added = 0
     if extension is not None and features_path is not None:
         # on the adjusted poses, whose projections are closer to the keypoints; then adjust again
         added = extend_tracks(rec, features_path, extension)
         if added:
-            adjust_refined(rec)
+            adjust_refined(rec, refine_distortion=refine_distortion)
     return _write_model(rec, out_dir, added)
 
 
-def extend_and_adjust(model_dir: Path, out_dir: Path, features_path: Path,
-                      extension: TrackExtension = TrackExtension()) -> dict[str, float]:
+def extend_and_adjust(model_dir: Path, out_dir: Path, features_path: Path, extension: TrackExtension = TrackExtension(),
+                      *, refine_distortion: bool = True) -> dict[str, float]:
     """`extend_tracks` on the model of `model_dir`, then a global bundle adjustment when anything
     was added; writes the result to `out_dir` (replaced) and returns counts."""
     out_dir = Path(out_dir)
     rec = pycolmap.Reconstruction(str(model_dir))
     added = extend_tracks(rec, Path(features_path), extension)
     if added:
-        adjust_refined(rec)
+        adjust_refined(rec, refine_distortion=refine_distortion)
     return _write_model(rec, out_dir, added)
 
 
-def adjust_refined(rec: pycolmap.Reconstruction) -> None:
+def adjust_refined(rec: pycolmap.Reconstruction, *, refine_distortion: bool = True) -> None:
     """A refinement's global adjustment (after re-triangulation, after `extend_tracks`), within
-    `REFINE_BA_MAX_ITERATIONS`.
+    `REFINE_BA_MAX_ITERATIONS`; the cameras' distortion held when `refine_distortion` is False (as
+    the mapper held it: `map.refine_distortion`, `stages.map.distortion_held`).
 
     The model was adjusted by the mapper before its points were re-triangulated or its tracks grew;
     what was added moves it a little. On the 1,000-image synthetic world (979 views, 295,698
@@ -173,6 +174,7 @@ def adjust_refined(rec: pycolmap.Reconstruction) -> None:
     iterations, 62 s, for a cost of 0.4076 -> 0.4046 px (lab/notes/SCALE.md)."""
     options = pycolmap.BundleAdjustmentOptions()
     options.ceres.solver_options.max_num_iterations = REFINE_BA_MAX_ITERATIONS
+    options.refine_extra_params = refine_distortion
     bundle_adjust(rec, options)
 
 

@@ -30,6 +30,7 @@ from ...colmap import refine as colmap_refine
 from ...features import scores_are_scales
 from ...io import fingerprint, records
 from ...io.pairs import Pair
+from ...mapping import STAGE as MAP_STAGE
 from ...selection import pose_guided
 from .. import PairContext
 from .budget import PairBudget
@@ -155,11 +156,19 @@ def refine(ctx: PairContext, extra: list[Pair], db_path: Path, model_dir: Path,
     counts = colmap_refine.triangulate_and_adjust(model_dir, db_path, ctx.images_root, out_dir,
                                                   num_threads=ctx.conf.map.num_threads, seed=ctx.conf.seed,
                                                   features_path=ctx.features_path,
-                                                  extension=extension if rounds.extend_tracks else None)
+                                                  extension=extension if rounds.extend_tracks else None,
+                                                  refine_distortion=distortion_refined(ctx))
     elapsed = time.perf_counter() - tic
     logger.info("pose-guided round: re-triangulated, %d observations added to tracks, bundle-adjusted in %.1f s "
                 "(%d points)", counts["observations_added"], elapsed, counts["num_points3d"])
     return {"time_s": elapsed, **counts}
+
+
+def distortion_refined(ctx: PairContext) -> bool:
+    """Whether a refinement's adjustment refines the cameras' distortion: as the mapper did, unless
+    it was held (`map.refine_distortion` false, or the map stage's retry kept its model held)."""
+    held = records.done_info(ctx.out_dir, MAP_STAGE).get("distortion_held")
+    return ctx.conf.map.refine_distortion and not held
 
 
 def _extension(rounds: Any, backend: str) -> colmap_refine.TrackExtension:
@@ -178,7 +187,8 @@ def finish(ctx: PairContext, model_dir: Path, out_dir: Path, *, refined: bool) -
         return None
     tic = time.perf_counter()
     counts = colmap_refine.extend_and_adjust(model_dir, out_dir, ctx.features_path,
-                                             _extension(rounds, ctx.conf.extract.backend))
+                                             _extension(rounds, ctx.conf.extract.backend),
+                                             refine_distortion=distortion_refined(ctx))
     elapsed = time.perf_counter() - tic
     logger.info("final model: %d observations added to tracks, bundle-adjusted in %.1f s",
                 counts["observations_added"], elapsed)
