@@ -161,6 +161,16 @@ def test_the_report_says_when_another_mapper_built_the_model(sara_run: Path):
         in sections.reconstruction(data)
 
 
+def test_the_report_says_when_the_lens_distortion_was_held(sara_run: Path):
+    """The map stage's retry with the distortion held built model 0: the Reconstruction section says so."""
+    from sara.report import sections
+
+    data = load_run(sara_run)
+    assert "lens distortion" not in sections.reconstruction(data)
+    data.run["stages"]["map"]["distortion_held"] = True
+    assert ">lens distortion</th><td>held while mapping" in sections.reconstruction(data)
+
+
 def test_no_run_is_a_clear_error(tmp_path: Path):
     with pytest.raises(FileNotFoundError, match="no sara run"):
         write_report(tmp_path)

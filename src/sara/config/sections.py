@@ -182,8 +182,9 @@ class MapConfig:
     num_threads: int = option(-1, threads(), "COLMAP's mapping threads; -1: every core.")
     refine_distortion: bool = option(True, flag(), """Incremental mapper: refine the cameras' distortion
         (COLMAP's ba_refine_extra_params) while mapping. false holds it at its start (0 without
-        calibration), in the rounds' refinements too, where few points pin it down: on a low-texture stand-in whose principal point is
-        9 px off the centre the refined radial term ran to -0.7 to -1.6, and its first models broke into
+        calibration), in the rounds' refinements too, where few points pin it down: on a low-texture
+        stand-in whose principal point is 9 px off the centre the refined radial term ran to -0.7 to
+        -1.6, and its first models broke into
         pieces (7-26 of 47 views in the largest, SARA's pairs and exhaustive matching's alike); held,
         every mapping of the same databases kept all 47 views in one model. true: a first model that
         holds under half the views the verified pairs join is mapped again with it held, and that

@@ -218,6 +218,9 @@ def reconstruction(data: RunData) -> str:
     asked, used = data.config.get("map", {}).get("mapper"), data.stages.get("map", {}).get("mapper")
     if asked and used and used != asked:
         rows.append(("mapper", f"{esc(used)}: the {esc(asked)} mapper's model was contradicted by its pairs"))
+    if data.stages.get("map", {}).get("distortion_held"):
+        rows.append(("lens distortion", "held while mapping: with it refined, the first model held under half the "
+                     "views (map.refine_distortion)"))
     left_out = [n for n in data.names if n not in set(m.names)]
     if left_out:
         shown = ", ".join(esc(n) for n in left_out[:20]) + (" ..." if len(left_out) > 20 else "")
