@@ -192,3 +192,34 @@ def test_a_run_with_starved_sift_records_and_prints_the_advice(synthetic_scene, 
     assert result.code == 0, result.err
     assert "keypoints per image on average" in result.err
     assert json.loads((out / "run.json").read_text())["stages"]["extract"]["low_texture"] is True
+
+
+@pytest.mark.parametrize("per_frame, expected", [
+    (1, {(0, 2), (2, 4), (4, 5)}),
+    (2, {(0, 2), (0, 1), (2, 4), (3, 2), (4, 5)}),
+    (0, set()),
+])
+def test_the_chain_takes_each_frames_best_left_out_candidate_among_the_next_frames(per_frame, expected):
+    """Frames 0-5 in one sequence, view 6 in none, window 2: each frame's best unselected accepted
+    candidate among the two frames after it becomes "chain"; selected, rejected, too distant and
+    unordered candidates are left as they were."""
+    from types import SimpleNamespace
+
+    from sara.pairs.sara.source import chain_through_time, is_selected
+
+    candidates = {(0, 1): ("unselected", 0.2), (0, 2): ("unselected", 0.5), (0, 3): ("unselected", 0.9),
+                  (1, 2): ("tree", 0.3), (1, 3): ("rejected", 0.9), (3, 2): ("unselected", 0.3),
+                  (2, 4): ("unselected", 0.4), (4, 5): ("unselected", 0.1), (5, 6): ("unselected", 1.0),
+                  (0, 5): ("unselected", 0.8)}
+    edges = np.array(list(candidates), dtype=np.int64)
+    roles = [role for role, _ in candidates.values()]
+    scores = SimpleNamespace(weight=np.array([w for _, w in candidates.values()]))
+    conf = make_config("sift-offline", {"sequence.window": 2, "sequence.chain": per_frame}).sequence
+    added = chain_through_time(edges, roles, scores, [[0, 1, 2, 3, 4, 5]], conf)
+    chained = {pair for pair, role in zip(candidates, roles) if role == "chain"}
+    assert added == len(expected) and chained == expected
+    assert all(is_selected(role) for role in roles if role == "chain") and roles[3] == "tree" and roles[4] == "rejected"
+    # a chain never joins two sequences
+    roles = [role for role, _ in candidates.values()]
+    chain_through_time(edges, roles, scores, [[0, 1, 2], [3, 4, 5]], conf)
+    assert roles[5] == "unselected"  # (3, 2): frames of two sequences

@@ -70,6 +70,12 @@ class SequenceConfig:
         advanced=False)
     window: int = option(5, ints(1), """In a sequence, each frame is also a candidate pair with this many
         following frames, besides its retrieval neighbours (which close the loops).""")
+    chain: int = option(1, ints(0), """In a sequence, each frame's best accepted candidates (by weight) among
+        the `window` frames after it that the selection left out, this many, are selected too (role chain):
+        the chain through time that holds an incremental mapper's geometry between loop closures. On a
+        1,000-frame walk the first graph without it held 54% of its verified pairs between frames 9 or more
+        apart and mapped to 815 views (AUC@1 0.587); with it, 995 views in one model (0.902, 3 of 4 seeds),
+        where as many pairs by weight alone gave 918 (0.756). 0: none.""")
     min_agreement: float = option(0.5, reals(0, 1), """auto: the share of the images' nearest global
         descriptors that must be neighbouring frames (within `window`) for the names' order to count; in long
         sequences ten times the share a shuffled order reaches, where that is lower (from about 200 frames:

@@ -59,7 +59,8 @@ def source_sections(conf: PipelineConfig) -> tuple[str, ...]:
 
 #: settings added after runs were made: left out of the key at these values, so that a finished
 #: run is not redone for a setting it could not have had (it keeps what it found)
-ADDED_LATER: dict[str, dict[str, Any]] = {"rounds": {"repair_descriptor_ratio": 0.8, "pose_guided_last": True}}
+ADDED_LATER: dict[str, dict[str, Any]] = {"rounds": {"repair_descriptor_ratio": 0.8, "pose_guided_last": True},
+                                           "sequence": {"chain": 1}}
 
 
 def _keyed(section: str, values: dict[str, Any]) -> dict[str, Any]:

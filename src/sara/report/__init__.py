@@ -28,7 +28,7 @@ from ..io.pairs import Pair, read_pairs
 from ..io.scores import read_scores_csv
 from ..pipeline.rounds import ROUNDS_STAGE
 
-SELECTED_ROLES = ("tree", "loop", "anchor", "weak", "rescue")
+SELECTED_ROLES = ("tree", "loop", "anchor", "weak", "rescue", "chain")
 #: SARA's pairs matched after the first round: for weakly matched views before mapping, the
 #: pose-guided round, repairs of views left out of the model, and the fill round after a repair
 #: that left them out

@@ -26,6 +26,7 @@ ROLE_STYLE: dict[str, tuple[str, float, float, str]] = {
     "anchor": ("#e08a00", 2.0, 0.9, ""),
     "weak": ("#8e44ad", 2.0, 0.9, ""),
     "rescue": ("#8b5a2b", 2.0, 0.9, "6 3"),
+    "chain": ("#4682b4", 2.0, 0.9, ""),
     "support": ("#00897b", 2.0, 0.9, "6 3"),
     "pose-guided": ("#f06292", 2.0, 0.9, "6 3"),
     "repair": ("#c2185b", 2.0, 0.9, "6 3"),
@@ -35,8 +36,8 @@ ROLE_STYLE: dict[str, tuple[str, float, float, str]] = {
     "rejected": ("#d62728", 0.8, 0.22, "2 3"),
 }
 #: drawing order, faint first so the chosen edges lie on top
-ROLE_ORDER = ("rejected", "unselected", "fill", "repair", "pose-guided", "support", "rescue", "weak", "anchor", "loop",
-              "tree", "selected")
+ROLE_ORDER = ("rejected", "unselected", "fill", "repair", "pose-guided", "support", "rescue", "chain", "weak", "anchor",
+              "loop", "tree", "selected")
 #: the style of a role this page does not know (a pair source's own round): dashed, like the added roles
 OTHER_ROLE_STYLE = ("#6d4c41", 2.0, 0.9, "6 3")
 

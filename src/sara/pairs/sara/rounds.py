@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from ... import colmap, selection
+from ... import colmap
 from ...io import fingerprint, records
 from ...io.h5 import keypoint_counts
 from ...io.pairs import Pair
@@ -30,7 +30,7 @@ from .. import NoRounds, PairContext, Round
 from . import pose_guided
 from .budget import PairBudget
 from .repair import fill_pairs, left_out_views, neighbour_pairs, repair_pairs
-from .source import SCORES_NAME, score_with_ratio_test
+from .source import SCORES_NAME, is_selected, score_with_ratio_test
 from .support import support_pairs, view_inliers
 
 logger = logging.getLogger(__name__)
@@ -278,8 +278,7 @@ def pose_guided_round(ctx: PairContext, pairs: list[Pair], model_dir: Path) -> l
 def _first_round(scores_csv: Path) -> list[Pair]:
     scores, roles = read_scores_csv(scores_csv)
     roles = roles or [""] * len(scores)
-    return [(a, b) for a, b, r in zip(scores.name0, scores.name1, roles)
-            if r in selection.SELECTED_ROLES or r == "rescue"]
+    return [(a, b) for a, b, r in zip(scores.name0, scores.name1, roles) if is_selected(r)]
 
 
 #: the pipeline may refine the model after the pose-guided round instead of mapping again

@@ -82,8 +82,9 @@ def select(ctx: PairContext, cached: PairScores | None = None) -> PairResult:
     if num_ratio:
         roles, chosen_graph, rescued = _choose(len(names), edges, scores, conf)
 
+    num_chain = chain_through_time(edges, roles, scores, sequences.orders, conf.sequence) if sequences.used else 0
     write_scores_csv(ctx.out_dir / SCORES_NAME, scores, roles)
-    chosen = [candidates[e] for e, role in enumerate(roles) if role in selection.SELECTED_ROLES or role == "rescue"]
+    chosen = [candidates[e] for e, role in enumerate(roles) if is_selected(role)]
     labels = selection.connected_components(len(names), _selected_edges(edges, roles))
     info = {
         "num_candidates": len(candidates),
@@ -93,6 +94,7 @@ def select(ctx: PairContext, cached: PairScores | None = None) -> PairResult:
         "num_accepted": int(scores.accepted.sum()),
         "rejected": _count(r for r in scores.reason if r),
         "num_rescued": rescued,
+        "num_chain": num_chain,
         "tree_overlap": tree_overlap,
         "tree_overlap_setting": ctx.conf.score.tree_overlap,
         "field_of_view_deg": field_of_view,
@@ -299,8 +301,49 @@ def rescue_low_parallax(num_images: int, edges: np.ndarray, roles: list[str], sc
     return len(chosen)
 
 
+def chain_through_time(edges: np.ndarray, roles: list[str], scores: scoring.PairScores, orders: list[list[int]],
+                       conf: SequenceConfig) -> int:
+    """In each sequence, each frame's `conf.chain` best accepted candidates (by weight) among the
+    `conf.window` frames after it that the selection left out: their role becomes "chain" in place;
+    returns how many.
+
+    The spanning tree and its loops follow the weight, which does not prefer near frames: on a
+    1,000-frame walk that passes places again, 480 of the tree's 999 edges joined frames 9 or more
+    apart, and the first graph mapped to 815 views. The incremental mapper needs the chain between
+    the loops: with each frame's best forward candidate added (797 pairs), 995 views in one model;
+    as many pairs by weight alone, 918 (lab/notes/SCALE.md, thirty-ninth session)."""
+    if conf.chain <= 0 or len(edges) == 0:
+        return 0
+    position = {int(view): (k, i) for k, order in enumerate(orders) for i, view in enumerate(order)}
+    forward: dict[int, list[tuple[float, int]]] = {}
+    for e, (a, b) in enumerate(edges.tolist()):
+        if roles[e] != "unselected" or a not in position or b not in position:
+            continue
+        (seq_a, at_a), (seq_b, at_b) = position[a], position[b]
+        if seq_a == seq_b and 0 < abs(at_b - at_a) <= conf.window:
+            first = a if at_a < at_b else b
+            forward.setdefault(first, []).append((-float(scores.weight[e]), e))
+    added = 0
+    for options in forward.values():
+        for _, e in sorted(options)[:conf.chain]:
+            roles[e] = "chain"
+            added += 1
+    if added:
+        logger.info("sequence: %d pairs between near frames added to the selection (the chain through time)", added)
+    return added
+
+
+#: roles of pairs chosen besides the selection's own (`selection.SELECTED_ROLES`)
+CHOSEN_ROLES = ("rescue", "chain")
+
+
+def is_selected(role: str) -> bool:
+    """Whether a candidate of this role is one of the selection's pairs."""
+    return role in selection.SELECTED_ROLES or role in CHOSEN_ROLES
+
+
 def _selected_edges(edges: np.ndarray, roles: list[str]) -> np.ndarray:
-    mask = np.array([r in selection.SELECTED_ROLES or r == "rescue" for r in roles], dtype=bool)
+    mask = np.array([is_selected(r) for r in roles], dtype=bool)
     return edges[mask] if len(edges) else edges.reshape(0, 2)
 
 
