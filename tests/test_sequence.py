@@ -223,3 +223,35 @@ def test_the_chain_takes_each_frames_best_left_out_candidate_among_the_next_fram
     roles = [role for role, _ in candidates.values()]
     chain_through_time(edges, roles, scores, [[0, 1, 2], [3, 4, 5]], conf)
     assert roles[5] == "unselected"  # (3, 2): frames of two sequences
+
+
+def test_sara_pairs_on_a_sequence_selects_each_frames_chain_pair(synthetic_scene, scene_features, tmp_path: Path):
+    """`sara pairs --sequence yes` on the numbered synthetic frames: each frame whose candidates among
+    the window's next frames were left out by the selection gets its best one (role chain in
+    scores.csv, in pairs.txt, counted in run.json)."""
+    import csv
+    import json
+
+    from harness import run_redirected
+    from sara.io.pairs import read_pairs
+    from sara.pipeline import share_features
+
+    images, _ = synthetic_scene
+    out = tmp_path / "out"
+    share_features(scene_features, out)
+    result = run_redirected("pairs", images, out, "--sequence", "yes", "-q")
+    assert result.code == 0, result.err
+    rows = list(csv.DictReader(open(out / "scores.csv")))
+    window = SequenceConfig().window
+    frame = {name: int(name.rsplit("frame", 1)[1].split(".")[0]) for r in rows for name in (r["name0"], r["name1"])}
+    left_out: dict[str, list[tuple[float, int, tuple[str, str]]]] = {}
+    for k, r in enumerate(rows):  # the best weight; on a tie the candidate listed first
+        a, b = sorted((r["name0"], r["name1"]), key=frame.get)
+        if r["role"] in ("unselected", "chain") and 0 < frame[b] - frame[a] <= window:
+            left_out.setdefault(a, []).append((float(r["weight"]), -k, (r["name0"], r["name1"])))
+    expected = {max(options)[2] for options in left_out.values()}
+    chained = {(r["name0"], r["name1"]) for r in rows if r["role"] == "chain"}
+    assert chained and chained == expected
+    assert chained <= {tuple(p) for p in read_pairs(out / "pairs.txt")}
+    record = json.loads((out / "run.json").read_text())
+    assert record["stages"]["pairs"]["num_chain"] == len(chained)

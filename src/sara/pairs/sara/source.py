@@ -303,9 +303,9 @@ def rescue_low_parallax(num_images: int, edges: np.ndarray, roles: list[str], sc
 
 def chain_through_time(edges: np.ndarray, roles: list[str], scores: scoring.PairScores, orders: list[list[int]],
                        conf: SequenceConfig) -> int:
-    """In each sequence, each frame's `conf.chain` best accepted candidates (by weight) among the
-    `conf.window` frames after it that the selection left out: their role becomes "chain" in place;
-    returns how many.
+    """In each sequence, each frame's `conf.chain` best accepted candidates (by weight; on a tie the
+    candidate listed first) among the `conf.window` frames after it that the selection left out:
+    their role becomes "chain" in place; returns how many.
 
     The spanning tree and its loops follow the weight, which does not prefer near frames: on a
     1,000-frame walk that passes places again, 480 of the tree's 999 edges joined frames 9 or more
