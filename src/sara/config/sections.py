@@ -184,9 +184,9 @@ class MapConfig:
         (COLMAP's ba_refine_extra_params) while mapping. false holds it at its start (0 without
         calibration), in the rounds' refinements too, where few points pin it down: on a low-texture
         stand-in whose principal point is 9 px off the centre the refined radial term ran to -0.7 to
-        -1.6, and its first models broke into
-        pieces (7-26 of 47 views in the largest, SARA's pairs and exhaustive matching's alike); held,
-        every mapping of the same databases kept all 47 views in one model. true: a first model that
+        -1.6, and its first models broke into pieces (7-26 of 47 views in the largest, SARA's pairs
+        and exhaustive matching's alike); held, every mapping of the same databases kept all 47 views
+        in one model. true: a first model that
         holds under half the views the verified pairs join is mapped again with it held, and that
         mapping is kept (and its continuations hold it) when its largest model holds more views.""")
     contradicted_remaps: int = option(2, ints(0), """Incremental mapper: when more than 0.5% of the verified
