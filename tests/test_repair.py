@@ -202,20 +202,6 @@ def test_fill_pairs_are_the_best_unmatched_accepted_candidates(tmp_path: Path):
     assert fill_pairs(path, [("a", "b")], room=0) == []
 
 
-def test_the_fill_round_gets_the_caps_share_of_the_views_still_out():
-    """1,000 views under a cap of 4 per view (4,000 pairs), 2,500 matched: 5 views out get 20
-    pairs, not the 1,500 left under the cap, which stay for the pose-guided round; 600 views out
-    get the rest of the cap."""
-    from sara.config import BudgetConfig, RoundsConfig
-    from sara.pairs.sara.budget import PairBudget
-
-    budget = PairBudget(1000, BudgetConfig(max_pairs_per_image=4.0, max_pairs_fraction=1.0), RoundsConfig())
-    assert budget.fill(2500, num_left_out=5) == 20
-    assert budget.fill(2500, num_left_out=600) == 1500
-    assert budget.fill(4000, num_left_out=600) == 0
-    assert PairBudget(1000, budget.budget, budget.rounds, time_limit=7).fill(2500, num_left_out=5) == 7
-
-
 def test_views_a_repair_left_out_get_the_fill_round_once_then_the_pose_guided_one(tmp_path: Path, monkeypatch):
     """Views a repair could not bring in: the rest of the cap on the best remaining pairs, once."""
     from types import SimpleNamespace

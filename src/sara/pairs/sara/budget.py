@@ -60,14 +60,10 @@ class PairBudget:
         have no 3D point)."""
         return self._in_time(max(self.budget.pair_cap(self.num_images) - num_matched, 2 * num_left_out))
 
-    def fill(self, num_matched: int, num_left_out: int) -> int:
+    def fill(self, num_matched: int) -> int:
         """Pairs the fill round may add (after a repair that left its views out): a repair's room,
-        with no view left to guarantee a pair, and at most the cap's share per image for each view
-        still out. The fill densifies the whole graph for the views out; where they are a few of
-        thousands, the rest of the cap bought little (1,000 images: 961 pairs for none; 3,000: 2,855
-        for 3) and left nothing to the pose-guided round."""
-        share = math.ceil(self.cap * num_left_out / max(self.num_images, 1) - 1e-9)
-        return min(self.repair(num_matched, num_left_out=0), share)
+        with no view left to guarantee a pair."""
+        return self.repair(num_matched, num_left_out=0)
 
     def pose_guided(self, num_matched: int, num_registered: int) -> int:
         """Pairs the pose-guided round may add: its own share per registered view

@@ -3,9 +3,9 @@
 - before the first mapping, `support` pairs for views whose matched pairs hold few inliers;
 - after it, `repair` pairs for views the mapper left out of the main model; where a repair left
   most of its views out, once, the `fill` pairs (the best unmatched candidates of all views, up to
-  the cap's share of the views still out); or else, once, the `pose-guided` pairs the first model
-  predicts to add the most observations; the model is then refined with its poses fixed instead of
-  mapped again (`pose_guided.refine`);
+  the cap); or else, once, the `pose-guided` pairs the first model predicts to add the most
+  observations; the model is then refined with its poses fixed instead of mapped again
+  (`pose_guided.refine`);
 - on the final model, when no refinement did it, its tracks are extended (`pose_guided.finish`).
 
 Every round takes its pairs from the one ledger, `budget.PairBudget`.
@@ -75,8 +75,7 @@ def after_mapping(ctx: PairContext, pairs: list[Pair], model_dir: Path) -> Round
        views are still out (`_repair_stalled`; once the fill round's pairs are matched, one more
        repair may run);
     2. then, while views are still out (the repair stalled, or found no candidate into the model),
-       once: the best unmatched candidates of all views by weight, up to the cap's share per image for
-       each view still out (`PairBudget.fill`, `repair.fill_pairs`);
+       once: the best unmatched candidates of all views by weight, up to the cap (`repair.fill_pairs`);
     3. otherwise, once: the pose-guided round (`pose_guided.py`), the unmatched pairs of registered
        views that the model predicts to add the most observations; also in the pipeline's last round
        (`ctx.last_round`, once the repairs used up theirs), whatever views are still out.
@@ -160,7 +159,7 @@ def fill_round(ctx: PairContext, pairs: list[Pair], key: str, num_left_out: int)
     record = records.read_record(ctx.out_dir, FILL_STAGE)
     if record and record.get("done") is True and record.get("key") == key:
         return _still_to_match([(a, b) for a, b in record.get("info", {}).get("pairs", [])], pairs)
-    extra = fill_pairs(ctx.out_dir / SCORES_NAME, pairs, budget_of(ctx).fill(len(pairs), num_left_out))
+    extra = fill_pairs(ctx.out_dir / SCORES_NAME, pairs, budget_of(ctx).fill(len(pairs)))
     records.mark_done(ctx.out_dir, FILL_STAGE, key, {"left_out": num_left_out, "pairs": [list(p) for p in extra]})
     if extra:
         logger.warning("%d views are still out of the main model after a repair for them: the graph is too sparse "
