@@ -355,6 +355,54 @@ def test_a_round_whose_mapping_holds_fewer_views_keeps_the_model_it_started_from
     assert not (out / ".sara" / pipeline_rounds.BEFORE_ROUND).exists()
 
 
+@pytest.mark.parametrize("views_after", [5, 8])
+def test_a_run_killed_after_a_rounds_mapping_puts_the_larger_model_back_when_it_resumes(tmp_path: Path, monkeypatch,
+                                                                                       views_after):
+    """Killed between the round's mapping replacing the model and the comparison with the model the
+    round started from: the next run's rounds begin by that comparison (the state at the kill is a
+    copy of the output folder taken inside the mapping)."""
+    import shutil
+    from types import SimpleNamespace
+
+    from model_utils import ring_poses, write_text_model
+    from sara import colmap, mapping
+    from sara.config import make_config
+    from sara.io import records
+    from sara.pairs import Round
+    from sara.pipeline import rounds as pipeline_rounds
+
+    out, killed = tmp_path / "out", tmp_path / "killed"
+    poses = ring_poses(8)
+    write_text_model(out / "sparse" / "0", poses)
+    records.mark_done(out, mapping.STAGE, "matches-before", {"num_registered": 8, "num_components": 1, "time_s": 1.0},
+                      outputs={"sparse": mapping.model_digest(out / "sparse")})
+
+    def mapped_again(conf, db, images, out_dir, *, commit, input_model, **kwargs):
+        new = out_dir / ".sara" / "new"
+        write_text_model(new / "0", dict(list(poses.items())[:views_after]))
+        mapping.swap_in(new, out_dir / "sparse")
+        records.mark_done(out_dir, mapping.STAGE, "matches-after",
+                          {"num_registered": views_after, "num_components": 2, "time_s": 2.0},
+                          outputs={"sparse": mapping.model_digest(out_dir / "sparse")})
+        shutil.copytree(out_dir, killed)  # the folder as a kill here leaves it
+
+    monkeypatch.setattr(pipeline_rounds.mapping, "run", mapped_again)
+    monkeypatch.setattr(pipeline_rounds.match, "matches_digest", lambda db: "digest")
+    run = SimpleNamespace(out_dir=out, conf=make_config("sift-offline"), ctx=SimpleNamespace(images_root=tmp_path),
+                          progress=False)
+    pipeline_rounds._map_again(run, Round([("a", "b")], "repair"), tmp_path / "work.db", {})
+    assert len(colmap.registered_images(killed / "sparse" / "0")) == views_after  # the kill left the round's model
+
+    pipeline_rounds._restore_interrupted(killed)
+    assert len(colmap.registered_images(killed / "sparse" / "0")) == max(views_after, 8)
+    record = records.read_record(killed, mapping.STAGE)
+    assert record["info"]["num_registered"] == max(views_after, 8)
+    assert record["outputs"]["sparse"] == mapping.model_digest(killed / "sparse")
+    assert not (killed / ".sara" / pipeline_rounds.BEFORE_ROUND).exists()
+    assert not (killed / ".sara" / pipeline_rounds.BEFORE_RECORD).exists()
+    assert not list((killed / "sparse").glob("*.json"))
+
+
 def test_fully_scored_views_have_no_more_keypoints_than_the_scorer_uses_and_a_nearest_neighbour_matcher(tmp_path: Path):
     from types import SimpleNamespace
 

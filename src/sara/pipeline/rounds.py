@@ -25,7 +25,7 @@ from typing import Any
 
 from .. import colmap, eta, extract, mapping, match
 from ..config import PipelineConfig
-from ..io import NoResultError, file_digest, fingerprint, link_or_copy, records
+from ..io import NoResultError, file_digest, fingerprint, link_or_copy, read_json, records, write_json_atomic
 from ..io.pairs import Pair, read_pairs, write_pairs
 from ..pairs import PairContext, Round, Rounds
 
@@ -41,6 +41,9 @@ STAGED_PAIRS = "pairs.next.txt"
 #: where a round keeps the model it started from (hard links) until its own mapping is known to hold
 #: no fewer views in the main model
 BEFORE_ROUND = "sparse.before-round"
+#: the map stage's record of that model, beside it (a run killed after the round's mapping replaced
+#: the model and before it was compared puts it back on the next run: `_restore_interrupted`)
+BEFORE_RECORD = "sparse.before-round.json"
 
 
 @dataclass
@@ -183,6 +186,7 @@ def after_mapping(run: RoundsRun) -> dict[str, Any] | None:
     if run.conf.rounds.repair_rounds <= 0:
         return None
     out_dir = run.out_dir
+    _restore_interrupted(out_dir)
     info = ledger(out_dir, run.selection_key)
     if "first_map_time_s" not in info:  # the map stage's time of the first model, before any round
         info["first_map_time_s"] = records.done_info(out_dir, mapping.STAGE).get("time_s", 0.0)
@@ -350,6 +354,8 @@ def _map_again(run: RoundsRun, added: Round, work: Path, done: dict[str, Any]) -
     before = out_dir / ".sara" / BEFORE_ROUND
     previous = records.read_record(out_dir, mapping.STAGE)
     _linked_copy(out_dir / "sparse", before)
+    if before.is_dir():
+        write_json_atomic(out_dir / ".sara" / BEFORE_RECORD, previous)
     try:
         mapping.run(conf.map, work, run.ctx.images_root, out_dir, seed=conf.seed,
                     upstream_key=fingerprint(match.matches_digest(work)), progress=run.progress,
@@ -357,6 +363,7 @@ def _map_again(run: RoundsRun, added: Round, work: Path, done: dict[str, Any]) -
         map_s = records.done_info(out_dir, mapping.STAGE).get("time_s", 0.0)
         _keep_the_larger(out_dir, before, previous)
     finally:
+        (out_dir / ".sara" / BEFORE_RECORD).unlink(missing_ok=True)
         shutil.rmtree(before, ignore_errors=True)
     return map_s
 
@@ -367,6 +374,18 @@ def _linked_copy(sparse: Path, dest: Path) -> None:
     shutil.rmtree(dest, ignore_errors=True)
     if sparse.is_dir():
         shutil.copytree(sparse, dest, copy_function=link_or_copy)
+
+
+def _restore_interrupted(out_dir: Path) -> None:
+    """A round's starting model left behind by a run killed during the round's mapping: put back
+    when the mapping got as far as replacing it with a model of fewer views (`_keep_the_larger`),
+    then dropped. Killed before its record was written, the copy is the model as it still is."""
+    before, record = out_dir / ".sara" / BEFORE_ROUND, out_dir / ".sara" / BEFORE_RECORD
+    if record.is_file() and before.is_dir():
+        logger.info("a round's mapping was interrupted: checking the model it left against the one it started from")
+        _keep_the_larger(out_dir, before, read_json(record))
+    record.unlink(missing_ok=True)
+    shutil.rmtree(before, ignore_errors=True)
 
 
 def _keep_the_larger(out_dir: Path, before: Path, previous: dict[str, Any] | None) -> None:
