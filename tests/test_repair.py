@@ -403,6 +403,53 @@ def test_a_run_killed_after_a_rounds_mapping_puts_the_larger_model_back_when_it_
     assert not list((killed / "sparse").glob("*.json"))
 
 
+@pytest.mark.parametrize("committed", [False, True])
+def test_a_run_killed_inside_a_rounds_mapping_keeps_the_model_it_started_from(tmp_path: Path, monkeypatch, committed):
+    """Killed while the round's mapping ran (its record only started): before the round's matches
+    were committed, the map stage's record goes back to the earlier one; after, the model the round
+    started from is kept as the model of the committed matches."""
+    import shutil
+    from types import SimpleNamespace
+
+    from model_utils import ring_poses, write_text_model
+    from sara import colmap, mapping
+    from sara.config import make_config
+    from sara.io import records
+    from sara.pairs import Round
+    from sara.pipeline import rounds as pipeline_rounds
+
+    out, killed = tmp_path / "out", tmp_path / "killed"
+    poses = ring_poses(8)
+    write_text_model(out / "sparse" / "0", poses)
+    records.mark_done(out, mapping.STAGE, "matches-before", {"num_registered": 8, "num_components": 1, "time_s": 1.0},
+                      outputs={"sparse": mapping.model_digest(out / "sparse")})
+    database = {"matches": "before"}
+
+    def mapped_again(conf, db, images, out_dir, *, commit, input_model, **kwargs):
+        records.mark_started(out_dir, mapping.STAGE, "matches-after")
+        if committed:
+            commit()
+        shutil.copytree(out_dir, killed)  # the folder as a kill here leaves it
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(pipeline_rounds.mapping, "run", mapped_again)
+    monkeypatch.setattr(pipeline_rounds.match, "commit", lambda *args: database.update(matches="after"))
+    monkeypatch.setattr(pipeline_rounds, "_commit_pairs", lambda *args: None)
+    monkeypatch.setattr(pipeline_rounds.match, "matches_digest", lambda db: database["matches"])
+    run = SimpleNamespace(out_dir=out, conf=make_config("sift-offline"), ctx=SimpleNamespace(images_root=tmp_path),
+                          progress=False)
+    with pytest.raises(KeyboardInterrupt):
+        pipeline_rounds._map_again(run, Round([("a", "b")], "repair"), tmp_path / "work.db", {})
+
+    pipeline_rounds._restore_interrupted(killed)
+    record = records.read_record(killed, mapping.STAGE)
+    assert record["done"] is True and record["key"] == ("matches-after" if committed else "matches-before")
+    assert record["info"]["num_registered"] == 8
+    assert len(colmap.registered_images(killed / "sparse" / "0")) == 8
+    assert record["outputs"]["sparse"] == mapping.model_digest(killed / "sparse")
+    assert not (killed / ".sara" / pipeline_rounds.BEFORE_ROUND).exists()
+
+
 def test_fully_scored_views_have_no_more_keypoints_than_the_scorer_uses_and_a_nearest_neighbour_matcher(tmp_path: Path):
     from types import SimpleNamespace
 

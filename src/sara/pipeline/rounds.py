@@ -355,7 +355,8 @@ def _map_again(run: RoundsRun, added: Round, work: Path, done: dict[str, Any]) -
     previous = records.read_record(out_dir, mapping.STAGE)
     _linked_copy(out_dir / "sparse", before)
     if before.is_dir():
-        write_json_atomic(out_dir / ".sara" / BEFORE_RECORD, previous)
+        matches = fingerprint(match.matches_digest(out_dir / extract.DB_NAME))
+        write_json_atomic(out_dir / ".sara" / BEFORE_RECORD, {"previous": previous, "matches": matches})
     try:
         mapping.run(conf.map, work, run.ctx.images_root, out_dir, seed=conf.seed,
                     upstream_key=fingerprint(match.matches_digest(work)), progress=run.progress,
@@ -377,14 +378,24 @@ def _linked_copy(sparse: Path, dest: Path) -> None:
 
 
 def _restore_interrupted(out_dir: Path) -> None:
-    """A round's starting model left behind by a run killed during the round's mapping: put back
-    when the mapping got as far as replacing it with a model of fewer views (`_keep_the_larger`),
-    then dropped. Killed before its record was written, the copy is the model as it still is."""
-    before, record = out_dir / ".sara" / BEFORE_ROUND, out_dir / ".sara" / BEFORE_RECORD
-    if record.is_file() and before.is_dir():
+    """A round's starting model left behind by a run killed during the round's mapping, then
+    dropped. Killed once the mapping was recorded: the larger of the two models stays
+    (`_keep_the_larger`). Killed inside the mapping: before the round's matches were committed,
+    the map stage's record goes back to what it was (the model is untouched until then); after,
+    the starting model is put back as the model of those matches, as a mapping that failed keeps it."""
+    before, saved = out_dir / ".sara" / BEFORE_ROUND, out_dir / ".sara" / BEFORE_RECORD
+    if saved.is_file() and before.is_dir():
         logger.info("a round's mapping was interrupted: checking the model it left against the one it started from")
-        _keep_the_larger(out_dir, before, read_json(record))
-    record.unlink(missing_ok=True)
+        kept = read_json(saved)
+        now = records.read_record(out_dir, mapping.STAGE) or {}
+        if now.get("done") is True:
+            _keep_the_larger(out_dir, before, kept["previous"])
+        elif fingerprint(match.matches_digest(out_dir / extract.DB_NAME)) == kept["matches"]:
+            records.restore(out_dir, mapping.STAGE, kept["previous"])
+        elif colmap.has_model(before / "0"):
+            mapping.swap_in(before, out_dir / "sparse")
+            mapping.adopt(out_dir, ((kept["previous"] or {}).get("info") or {}), key=now.get("key", ""))
+    saved.unlink(missing_ok=True)
     shutil.rmtree(before, ignore_errors=True)
 
 
