@@ -393,7 +393,7 @@ def test_a_run_killed_after_a_rounds_mapping_puts_the_larger_model_back_when_it_
     pipeline_rounds._map_again(run, Round([("a", "b")], "repair"), tmp_path / "work.db", {})
     assert len(colmap.registered_images(killed / "sparse" / "0")) == views_after  # the kill left the round's model
 
-    pipeline_rounds._restore_interrupted(killed)
+    pipeline_rounds.recover(killed)  # what a run does first
     assert len(colmap.registered_images(killed / "sparse" / "0")) == max(views_after, 8)
     record = records.read_record(killed, mapping.STAGE)
     assert record["info"]["num_registered"] == max(views_after, 8)
@@ -441,7 +441,7 @@ def test_a_run_killed_inside_a_rounds_mapping_keeps_the_model_it_started_from(tm
     with pytest.raises(KeyboardInterrupt):
         pipeline_rounds._map_again(run, Round([("a", "b")], "repair"), tmp_path / "work.db", {})
 
-    pipeline_rounds._restore_interrupted(killed)
+    pipeline_rounds.recover(killed)  # what a run does first
     record = records.read_record(killed, mapping.STAGE)
     assert record["done"] is True and record["key"] == ("matches-after" if committed else "matches-before")
     assert record["info"]["num_registered"] == 8

@@ -42,7 +42,7 @@ STAGED_PAIRS = "pairs.next.txt"
 #: no fewer views in the main model
 BEFORE_ROUND = "sparse.before-round"
 #: the map stage's record of that model, beside it (a run killed after the round's mapping replaced
-#: the model and before it was compared puts it back on the next run: `_restore_interrupted`)
+#: the model and before it was compared puts it back on the next run: `restore_interrupted`)
 BEFORE_RECORD = "sparse.before-round.json"
 
 
@@ -106,15 +106,16 @@ def _commit_pairs(run: RoundsRun, added: Round, extra: dict[str, Any]) -> None:
 
 def recover(out_dir: Path) -> None:
     """A round's pairs whose ledger was written before a run was killed become `pairs.txt`; any
-    other staged pairs are dropped (call it holding the output folder's lock)."""
+    other staged pairs are dropped; a round's mapping that was killed leaves the map stage as
+    `restore_interrupted` says (call it holding the output folder's lock)."""
     staged = out_dir / ".sara" / STAGED_PAIRS
-    if not staged.exists():
-        return
-    record = records.read_record(out_dir, ROUNDS_STAGE) or {}
-    if record.get("info", {}).get("pairs_digest") == file_digest(staged):
-        os.replace(staged, out_dir / PAIRS_NAME)
-    else:
-        staged.unlink()
+    if staged.exists():
+        record = records.read_record(out_dir, ROUNDS_STAGE) or {}
+        if record.get("info", {}).get("pairs_digest") == file_digest(staged):
+            os.replace(staged, out_dir / PAIRS_NAME)
+        else:
+            staged.unlink()
+    restore_interrupted(out_dir)
 
 
 def clear(out_dir: Path) -> None:
@@ -186,7 +187,6 @@ def after_mapping(run: RoundsRun) -> dict[str, Any] | None:
     if run.conf.rounds.repair_rounds <= 0:
         return None
     out_dir = run.out_dir
-    _restore_interrupted(out_dir)
     info = ledger(out_dir, run.selection_key)
     if "first_map_time_s" not in info:  # the map stage's time of the first model, before any round
         info["first_map_time_s"] = records.done_info(out_dir, mapping.STAGE).get("time_s", 0.0)
@@ -377,12 +377,14 @@ def _linked_copy(sparse: Path, dest: Path) -> None:
         shutil.copytree(sparse, dest, copy_function=link_or_copy)
 
 
-def _restore_interrupted(out_dir: Path) -> None:
+def restore_interrupted(out_dir: Path) -> None:
     """A round's starting model left behind by a run killed during the round's mapping, then
     dropped. Killed once the mapping was recorded: the larger of the two models stays
     (`_keep_the_larger`). Killed inside the mapping: before the round's matches were committed,
     the map stage's record goes back to what it was (the model is untouched until then); after,
-    the starting model is put back as the model of those matches, as a mapping that failed keeps it."""
+    the starting model is put back as the model of those matches, as a mapping that failed keeps it.
+    Run by `recover`, before any stage: left "started", the map stage's record would have the map
+    stage map everything again."""
     before, saved = out_dir / ".sara" / BEFORE_ROUND, out_dir / ".sara" / BEFORE_RECORD
     if saved.is_file() and before.is_dir():
         logger.info("a round's mapping was interrupted: checking the model it left against the one it started from")

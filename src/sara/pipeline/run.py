@@ -186,8 +186,8 @@ def map_model(conf: PipelineConfig, images_root: Path, out_dir: Path, *, db_path
 def recover(out_dir: Path) -> None:
     """Finish or undo what a run killed between two swaps left (call it holding the lock): the
     previous `sparse/` when the new one never arrived; a round's `pairs.txt` whose ledger was
-    already written; image names aliased for COLMAP's pair importer (before any stage compares
-    the database with its record)."""
+    already written, and the map stage of a round whose mapping was killed; image names aliased
+    for COLMAP's pair importer (before any stage compares the database with its record)."""
     match.restore_names([out_dir / extract.DB_NAME, out_dir / ".sara" / match.NEXT_DB_NAME], out_dir)
     mapping.recover(out_dir)
     rounds.recover(out_dir)
