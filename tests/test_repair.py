@@ -307,6 +307,21 @@ def test_after_the_fill_one_more_repair_then_the_pose_guided_round(tmp_path: Pat
     assert sara_source.after_mapping(ctx, matched, model).role == "pose-guided"
 
 
+def _round_model(out_dir: Path, poses: dict, views: int) -> None:
+    """What a round's mapping leaves: a model of the first `views` of `poses` in `sparse/`, recorded
+    as the map stage's model of the round's matches."""
+    from model_utils import write_text_model
+    from sara import mapping
+    from sara.io import records
+
+    new = out_dir / ".sara" / "new"
+    write_text_model(new / "0", dict(list(poses.items())[:views]))
+    mapping.swap_in(new, out_dir / "sparse")
+    records.mark_done(out_dir, mapping.STAGE, "matches-after", {"num_registered": views, "num_components": 2,
+                                                               "time_s": 2.0},
+                      outputs={"sparse": mapping.model_digest(out_dir / "sparse")})
+
+
 @pytest.mark.parametrize("views_after", [5, 8])
 def test_a_round_whose_mapping_holds_fewer_views_keeps_the_model_it_started_from(tmp_path: Path, monkeypatch,
                                                                                  views_after):
@@ -332,12 +347,7 @@ def test_a_round_whose_mapping_holds_fewer_views_keeps_the_model_it_started_from
     def mapped_again(conf, db, images, out_dir, *, commit, input_model, **kwargs):
         assert input_model == out_dir / "sparse" / "0"  # the round continues the model
         commit()
-        new = out_dir / ".sara" / "new"
-        write_text_model(new / "0", dict(list(poses.items())[:views_after]))
-        mapping.swap_in(new, out_dir / "sparse")
-        records.mark_done(out_dir, mapping.STAGE, "matches-after",
-                          {"num_registered": views_after, "num_components": 2, "time_s": 2.0},
-                          outputs={"sparse": mapping.model_digest(out_dir / "sparse")})
+        _round_model(out_dir, poses, views_after)
 
     monkeypatch.setattr(pipeline_rounds.mapping, "run", mapped_again)
     monkeypatch.setattr(pipeline_rounds.match, "commit", lambda *args: committed.append("matches"))
@@ -378,12 +388,7 @@ def test_a_run_killed_after_a_rounds_mapping_puts_the_larger_model_back_when_it_
                       outputs={"sparse": mapping.model_digest(out / "sparse")})
 
     def mapped_again(conf, db, images, out_dir, *, commit, input_model, **kwargs):
-        new = out_dir / ".sara" / "new"
-        write_text_model(new / "0", dict(list(poses.items())[:views_after]))
-        mapping.swap_in(new, out_dir / "sparse")
-        records.mark_done(out_dir, mapping.STAGE, "matches-after",
-                          {"num_registered": views_after, "num_components": 2, "time_s": 2.0},
-                          outputs={"sparse": mapping.model_digest(out_dir / "sparse")})
+        _round_model(out_dir, poses, views_after)
         shutil.copytree(out_dir, killed)  # the folder as a kill here leaves it
 
     monkeypatch.setattr(pipeline_rounds.mapping, "run", mapped_again)
