@@ -76,7 +76,7 @@ class SequenceConfig:
         1,000-frame walk the first graph without it held 54% of its verified pairs between frames 9 or more
         apart and mapped to 815 views (AUC@1 0.587); with a chain over the next 8 frames, 995 views in one
         model (0.902, 3 of 4 seeds), where as many pairs by weight alone gave 918 (0.756). End to end, same
-        pair cap: AUC@1 0.920 -> 0.930 at 1,000 frames, 0.908 -> 0.921 at 3,000. 0: none.""")
+        pair cap, one run each: AUC@1 0.920 -> 0.930 at 1,000 frames, 0.908 -> 0.921 at 3,000. 0: none.""")
     min_agreement: float = option(0.5, reals(0, 1), """auto: the share of the images' nearest global
         descriptors that must be neighbouring frames (within `window`) for the names' order to count; in long
         sequences ten times the share a shuffled order reaches, where that is lower (from about 200 frames:
