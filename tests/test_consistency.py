@@ -161,7 +161,7 @@ def test_the_stage_record_keeps_the_first_models_check_through_a_continuation(sc
     mapping.run(MapConfig(), db_path, tmp_path, tmp_path / "out", seed=0, progress=False)
     first = records.done_info(tmp_path / "out", "map")
     assert {k: first[k] for k in mapping.FIRST_MODEL_KEYS} == {
-        "seed": 1, "remaps": 1, "first_model_pairs_checked": 15, "first_model_pairs_contradicted": 0}
+        "seed": 1, "remaps": 1, "mended": False, "first_model_pairs_checked": 15, "first_model_pairs_contradicted": 0}
     continued = mapping._first_model_check(colmap.MappedModels({0: rec}), records.read_record(tmp_path / "out", "map"))
     assert continued == {k: first[k] for k in mapping.FIRST_MODEL_KEYS}
     assert mapping._first_model_check(colmap.MappedModels({0: rec}), None) == {}

@@ -107,14 +107,15 @@ def _mapped_by(record: dict[str, Any] | None) -> str | None:
 
 
 #: what the record says of the first mapping's check (`_agreeing`); a continued model keeps it
-FIRST_MODEL_KEYS = ("seed", "remaps", "first_model_pairs_checked", "first_model_pairs_contradicted")
+FIRST_MODEL_KEYS = ("seed", "remaps", "mended", "first_model_pairs_checked", "first_model_pairs_contradicted")
 
 
 def _first_model_check(recs: colmap.MappedModels, previous: dict[str, Any] | None) -> dict[str, Any]:
     """The seed that built the first model, the mappings under other seeds, and its pairs checked and
     contradicting it: from this mapping, or for a continued model from the record it continued."""
     if recs.agreement_check is not None:
-        return {"seed": recs.seed, "remaps": recs.remaps, "first_model_pairs_checked": recs.agreement_check.checked,
+        return {"seed": recs.seed, "remaps": recs.remaps, "mended": recs.mended,
+                "first_model_pairs_checked": recs.agreement_check.checked,
                 "first_model_pairs_contradicted": len(recs.agreement_check.contradicted)}
     earlier = (previous or {}).get("info") or {}
     return {k: earlier[k] for k in FIRST_MODEL_KEYS if k in earlier}
@@ -256,23 +257,24 @@ REMAP_THREADS = 1
 def _agreeing(conf: MapConfig, db_path: Path, images_root: Path, tmp: Path, seed: int, progress: bool,
               num_images: int, first: colmap.MappedModels, min_num_inliers: int,
               checkpoint: Checkpoint | None = None) -> colmap.MappedModels:
-    """Map again, at most `map.contradicted_remaps` times, while the first mapping's largest model is
-    contradicted by its own verified pairs (`_contradicted`): each time under the next seed, on
-    `REMAP_THREADS` threads, the first model started from the view in most of the contradicting
-    pairs; keeps the best. When a new mapping is contradicted by exactly the pairs that contradicted
-    the one before it, the fault is in those pairs' matches, not in how the mapper built the model,
-    and no more mappings follow (dtu-scan24 under exhaustive matching: the same 12 pairs under seeds
-    0 and 1, lab/notes/CAPTURES.md, section 15).
+    """Mend the first mapping's largest model at its seam (`_mended`, if `map.mend_seam`) when its own
+    verified pairs contradict it (`_contradicted`), then map again, at most `map.contradicted_remaps`
+    times, while the best so far is contradicted: under the next seed, on `REMAP_THREADS` threads,
+    the first model started from the view in most of the contradicting pairs; keeps the best. When a
+    mapping is contradicted by exactly the pairs that contradicted the one before it, the fault is in
+    those pairs' matches, not in how the mapper built the model, and no more mappings follow
+    (dtu-scan24 under exhaustive matching: the same 12 pairs under seeds 0 and 1, CAPTURES.md 15).
 
     The incremental mapper can bend a model where the views pass a place twice: the pairs that
     would close the loop never join a track, so nothing in the mapper sees them (1,000-image
-    synthetic street, first graph of 2,421 pairs, both cores: seeds 0 and 1 bent, median view
-    rotation error 1.2 and 3.5 degrees). The start at the seam is meant to hold both passes before
-    drift builds up; it gave unbent models twice, but under a load that left the plain remap unbent
-    as well, so what is shown is the single thread's effect (`REMAP_THREADS`)."""
+    synthetic street, first graph of 2,421 pairs, both cores: seeds 0 and 1 bent). The start at the
+    seam is meant to hold both passes before drift builds up; what is shown is the single thread's
+    effect (`REMAP_THREADS`)."""
     best, best_check = first, first.agreement(db_path, min_num_inliers)
     best.seed, remaps, check = seed, 0, best_check
     earlier = check  # the check of the model mapped last before the next one
+    if _contradicted(best_check) and conf.mend_seam:
+        best, best_check = _mended(conf, db_path, images_root, tmp, seed, progress, first, check, min_num_inliers)
     while _contradicted(best_check) and remaps < conf.contradicted_remaps:
         remaps += 1
         start = check.most_contradicted_view()  # the last model's: a model no pair contradicts ends the loop
@@ -301,6 +303,27 @@ def _agreeing(conf: MapConfig, db_path: Path, images_root: Path, tmp: Path, seed
         earlier = check
     best.agreement_check, best.remaps = best_check, remaps
     return best
+
+
+def _mended(conf: MapConfig, db_path: Path, images_root: Path, tmp: Path, seed: int, progress: bool,
+            first: colmap.MappedModels, check: colmap.Agreement,
+            min_num_inliers: int) -> tuple[colmap.MappedModels, colmap.Agreement]:
+    """The first model cut at its seam and continued (`colmap.mend`), with its check, where the cut
+    keeps most of the model and the continued one is better (`_better`); else the first model."""
+    cut = colmap.cut_at_seam(first, check, db_path, tmp / "mend" / "cut", min_num_inliers=min_num_inliers)
+    if cut is None:
+        return first, check
+    logger.warning("map: %d of the %d verified pairs between the views of the largest model contradict it: taking "
+                   "out the %d views up to %d pairs from them (and %d cut off with them) and continuing the %d "
+                   "others", len(check.contradicted), check.checked, cut.taken_out, colmap.SEAM_HOPS, cut.dropped,
+                   cut.kept)
+    mended, _, _ = _extend(conf, db_path, images_root, tmp / "mend", seed, progress, tmp / "mend" / "cut",
+                           min_num_inliers)
+    mended.forward_start, mended.distortion_held = first.forward_start, first.distortion_held
+    mended.seed, mended.mended, again = seed, True, mended.agreement(db_path, min_num_inliers)
+    logger.warning("map: continued, the largest model holds %d views (%d before), %d of %d pairs contradict it",
+                   mended.largest, first.largest, len(again.contradicted), again.checked)
+    return (mended, again) if _better(mended, again, first, check) else (first, check)
 
 
 def _contradicted(check: colmap.Agreement) -> bool:

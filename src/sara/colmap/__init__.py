@@ -55,6 +55,7 @@ from .geometry import (
     mean_focal_px,
 )
 from .matching import VERIFICATION_SEED, estimate_fundamental, match_pairs, verify_pairs
+from .mend import SEAM_HOPS, Cut, cut_at_seam
 from .native import ColmapError, quiet_signals_in_worker, send_log_to, set_seed, version
 from .reconstruction import (
     ModelSummary,
@@ -84,6 +85,9 @@ __all__ = [
     "MappedModels",
     "Agreement",
     "CONTRADICTION_PX",
+    "Cut",
+    "SEAM_HOPS",
+    "cut_at_seam",
     "model_agreement",
     "ModelSummary",
     "build_visual_index",

@@ -39,6 +39,7 @@ class MappedModels:
     remaps: int = 0  # mappings under other seeds because the first model was contradicted
     mapper: str | None = None  # set where another mapper than the one asked for built them
     distortion_held: bool = False  # mapped with the cameras' distortion held (`refine_extra_params` False)
+    mended: bool = False  # a contradicted first model cut at its seam and continued (`mend`)
 
     def agreement(self, db_path: Path, min_num_inliers: int) -> Agreement:
         """How the largest model agrees with the verified pairs between its views (`consistency`)."""

@@ -196,6 +196,12 @@ class MapConfig:
         and keep the model its pairs agree with, else the largest; stop early when a mapping is contradicted
         by the same pairs as the one before it (the pairs are wrong, not the model). Global mapper: a model
         so contradicted is mapped again by the incremental mapper and the better one kept. 0: never.""")
+    mend_seam: bool = option(True, flag(), """Incremental mapper: before mapping a contradicted first model
+        again, take out the views of the contradicting pairs and every view up to two verified pairs
+        from them, and continue the rest, which registers them again; kept, and no remap follows, when
+        its pairs then agree with it and it holds as many views less the seam's. Tried only where the
+        cut keeps at least half the model (a seam in a large model, not a small scene bent as a whole):
+        at 10,000 images it mended a first model in minutes where a remap takes hours.""")
     ba_global_growth: float = option(0.0, growth(), """Incremental mapper: adjust the whole model each time
         its registered views or points grew by this factor (COLMAP's ba_global_frames_ratio and
         ba_global_points_ratio, 1.1). 0: by size, COLMAP's 1.1 for scenes of fewer than 500 images
