@@ -438,7 +438,7 @@ def _model_intact(out_dir: Path, sparse: Path) -> bool:
 #: settings added after runs were made: left out of the key at these values, so that a finished
 #: model is not mapped again after an upgrade for a setting it could not have had
 ADDED_LATER: dict[str, Any] = {"ba_global_growth": 0.0, "ba_global_refinements": 0, "ba_direct_max_images": 0,
-                               "contradicted_remaps": 2, "refine_distortion": True}
+                               "contradicted_remaps": 2, "refine_distortion": True, "mend_seam": True}
 
 
 #: settings that do not change the model: how often a long mapping keeps its models so far
