@@ -171,6 +171,21 @@ def test_the_report_says_when_the_lens_distortion_was_held(sara_run: Path):
     assert ">lens distortion</th><td>held while mapping" in sections.reconstruction(data)
 
 
+def test_the_report_says_how_a_contradicted_first_model_was_set_right(sara_run: Path):
+    """Mended at its seam, or mapped again under other seeds: the Reconstruction section says which."""
+    from sara.report import sections
+
+    data = load_run(sara_run)
+    assert "first model" not in sections.reconstruction(data)
+    stage = data.run["stages"]["map"]
+    stage.update(remaps=1, seed=1)
+    assert ">first model</th><td>contradicted by its verified pairs: mapped again 1 time(s) under other seeds, " \
+           "seed 1 kept" in sections.reconstruction(data)
+    stage.update(remaps=0, mended=True, first_model_pairs_contradicted=93, first_model_pairs_checked=26159)
+    assert ">first model</th><td>contradicted by 93 of its 26159 verified pairs: mended at the seam" \
+        in sections.reconstruction(data)
+
+
 def test_no_run_is_a_clear_error(tmp_path: Path):
     with pytest.raises(FileNotFoundError, match="no sara run"):
         write_report(tmp_path)

@@ -218,6 +218,9 @@ def reconstruction(data: RunData) -> str:
     asked, used = data.config.get("map", {}).get("mapper"), data.stages.get("map", {}).get("mapper")
     if asked and used and used != asked:
         rows.append(("mapper", f"{esc(used)}: the {esc(asked)} mapper's model was contradicted by its pairs"))
+    first = _first_model(data.stages.get("map", {}))
+    if first:
+        rows.append(("first model", first))
     if data.stages.get("map", {}).get("distortion_held"):
         rows.append(("lens distortion", "held while mapping: with it refined, the first model held under half the "
                      "views (map.refine_distortion)"))
@@ -226,6 +229,18 @@ def reconstruction(data: RunData) -> str:
         shown = ", ".join(esc(n) for n in left_out[:20]) + (" ..." if len(left_out) > 20 else "")
         rows.append(("not in model 0", shown))
     return section("Reconstruction", table(rows))
+
+
+def _first_model(stage: dict) -> str:
+    """What the map stage did with a first model its pairs contradicted (empty when none was)."""
+    contradicted, checked = stage.get("first_model_pairs_contradicted"), stage.get("first_model_pairs_checked")
+    if stage.get("mended"):
+        return (f"contradicted by {contradicted} of its {checked} verified pairs: mended at the seam (the views "
+                "around those pairs taken out and registered again; map.mend_seam)")
+    if stage.get("remaps"):
+        return (f"contradicted by its verified pairs: mapped again {stage['remaps']} time(s) under other seeds, "
+                f"seed {stage.get('seed')} kept (map.contradicted_remaps)")
+    return ""
 
 
 def _contradicted(check: colmap.Agreement) -> str:
