@@ -24,7 +24,8 @@ from .database import open_pycolmap_database
 from .sfm import MappedModels
 
 #: the views taken out are those of the contradicting pairs and every view up to this many verified
-#: pairs away from them (10,000-image street: none away left the stretches in place, two mended them)
+#: pairs away from them (10,000-image street: none away left the stretches in place; one and two
+#: mended them alike, as on a bent 1,000-image model; two leaves room for a wider stretch)
 SEAM_HOPS = 2
 #: a cut keeping less of the model than this share is no local mend: the model is mapped again instead
 MIN_KEPT_SHARE = 0.5
