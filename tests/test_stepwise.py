@@ -257,6 +257,41 @@ def test_the_map_stage_keeps_the_checkpoint_of_a_killed_run_and_removes_it_when_
     assert not kept.exists()
 
 
+def test_a_resumed_mapping_counts_the_time_mapped_before_the_kill(database: Path, tmp_path: Path, monkeypatch):
+    """The checkpoint keeps how long the mapping ran; the map stage that resumes it records that time
+    with its own (else a mapping of hours killed near its end would say it took seconds)."""
+    import time
+
+    from sara import mapping
+    from sara.config import make_config
+    from sara.io import records
+
+    out = tmp_path / "out"
+    out.mkdir()
+    conf = make_config("sift-offline", {"map.ba_direct_max_images": 5000, "map.checkpoint_minutes": 1e-9,
+                                        "map.num_threads": 1, "map.contradicted_remaps": 0}).map
+    register = stepwise._Run.register_next
+    calls = []
+
+    def slow_then_stopped(self, *args):
+        calls.append(1)
+        if len(calls) == 10:
+            raise KeyboardInterrupt
+        time.sleep(0.2)
+        return register(self, *args)
+
+    monkeypatch.setattr(stepwise._Run, "register_next", slow_then_stopped)
+    with pytest.raises(KeyboardInterrupt):
+        mapping.run(conf, database, database.parent / "images", out, progress=False)
+    before_s = json.loads((out / ".sara" / mapping.CHECKPOINT / "checkpoint.json").read_text())["elapsed_s"]
+    assert before_s >= 1.0  # most of the nine slow registrations, up to the last global adjustment
+    monkeypatch.setattr(stepwise._Run, "register_next", register)
+    tic = time.perf_counter()
+    mapping.run(conf, database, database.parent / "images", out, progress=False)
+    resumed_s = time.perf_counter() - tic
+    assert before_s <= records.done_info(out, "map")["time_s"] <= before_s + resumed_s
+
+
 def test_a_damaged_checkpoint_is_mapped_from_the_start(database: Path, tmp_path: Path):
     images = database.parent / "images"
     checkpoint = stepwise.Checkpoint(tmp_path / "ckpt", "key-1", every_s=1e9)
@@ -273,6 +308,7 @@ def test_a_remap_of_a_killed_run_resumes_from_its_own_checkpoint(database: Path,
     remap goes on from the remap's checkpoint, the first mapping's (ended) restored as it was."""
     from sara import mapping
     from sara.config import make_config
+    from sara.io import records
 
     out = tmp_path / "out"
     out.mkdir()
@@ -300,7 +336,8 @@ def test_a_remap_of_a_killed_run_resumes_from_its_own_checkpoint(database: Path,
         mapping.run(conf, database, database.parent / "images", out, progress=False)
     first, remap = out / ".sara" / mapping.CHECKPOINT, out / ".sara" / f"{mapping.CHECKPOINT}-seed-1"
     assert remapping == ["go", "stop"]
-    assert json.loads((first / "checkpoint.json").read_text())["current"] is None  # the first mapping ended
+    ended = json.loads((first / "checkpoint.json").read_text())
+    assert ended["current"] is None  # the first mapping ended
     kept = json.loads((remap / "checkpoint.json").read_text())
     assert kept["current"] == 0 and 2 < kept["views"][0] < 20
 
@@ -317,6 +354,8 @@ def test_a_remap_of_a_killed_run_resumes_from_its_own_checkpoint(database: Path,
     mapping.run(conf, database, database.parent / "images", out, progress=False)
     # the first mapping registered nothing again, the remap only the views its checkpoint lacked
     assert per_mapping == [0, 20 - kept["views"][0]]
+    # the stage's time holds both mappings' time before the kill, read from their checkpoints
+    assert records.done_info(out, "map")["time_s"] >= ended["elapsed_s"] + kept["elapsed_s"] > 0
     assert len(pycolmap.Reconstruction(str(out / "sparse" / "0")).reg_image_ids()) == 20
     assert not list((out / ".sara").glob(mapping.CHECKPOINT + "*"))  # every checkpoint removed once done
 

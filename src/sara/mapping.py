@@ -64,6 +64,7 @@ def run(conf: MapConfig, db_path: Path, images_root: Path, out_dir: Path, *, see
         if conf.checkpoint_minutes > 0 and not extend else None
     if checkpoint is not None and overwrite:
         checkpoint.remove()
+    earlier_s = checkpoint.elapsed_s() if checkpoint is not None else 0.0  # mapped before a kill, resumed now
     tmp = out_dir / ".sara" / PARTIAL
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
@@ -89,7 +90,7 @@ def run(conf: MapConfig, db_path: Path, images_root: Path, out_dir: Path, *, see
     if commit is not None:
         commit()
     swap_in(tmp, sparse)
-    info = {"time_s": elapsed, "num_components": len(sizes), "component_sizes": sizes,
+    info = {"time_s": elapsed + earlier_s, "num_components": len(sizes), "component_sizes": sizes,
             "num_registered": sizes[0], "num_images": num_images, "forward_start": recs.forward_start,
             "continued": extend, "mapper": recs.mapper or conf.mapper, "distortion_held": held or recs.distortion_held}
     info.update(_first_model_check(recs, previous if info["continued"] else None))
@@ -313,10 +314,9 @@ def _mended(conf: MapConfig, db_path: Path, images_root: Path, tmp: Path, seed: 
     cut = colmap.cut_at_seam(first, check, db_path, tmp / "mend" / "cut", min_num_inliers=min_num_inliers)
     if cut is None:
         return first, check
-    logger.warning("map: %d of the %d verified pairs between the views of the largest model contradict it: taking "
-                   "out the %d views up to %d pairs from them (and %d cut off with them) and continuing the %d "
-                   "others", len(check.contradicted), check.checked, cut.taken_out, colmap.SEAM_HOPS, cut.dropped,
-                   cut.kept)
+    logger.warning("map: %d of the %d verified pairs between the views of the largest model contradict it: taking out "
+                   "the %d views up to %d pairs from them (and %d cut off with them) and continuing the %d others",
+                   len(check.contradicted), check.checked, cut.taken_out, colmap.SEAM_HOPS, cut.dropped, cut.kept)
     mended, _, _ = _extend(conf, db_path, images_root, tmp / "mend", seed, progress, tmp / "mend" / "cut",
                            min_num_inliers)
     mended.forward_start, mended.distortion_held = first.forward_start, first.distortion_held

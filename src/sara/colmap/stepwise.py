@@ -62,9 +62,10 @@ class Checkpoint:
     key: str
     every_s: float
 
-    def save(self, manager: pycolmap.ReconstructionManager, current: int | None) -> None:
-        """Write every model of `manager` (`current`: the one growing; None: the mapping ended); the
-        folder is replaced only once the new one is complete."""
+    def save(self, manager: pycolmap.ReconstructionManager, current: int | None, elapsed_s: float = 0.0) -> None:
+        """Write every model of `manager` (`current`: the one growing; None: the mapping ended) and the
+        seconds the mapping has taken so far, over every run of it; the folder is replaced only once
+        the new one is complete."""
         new, old = self.folder.with_name(self.folder.name + ".next"), self.folder.with_name(self.folder.name + ".old")
         shutil.rmtree(new, ignore_errors=True)
         new.mkdir(parents=True)
@@ -73,7 +74,8 @@ class Checkpoint:
             (new / str(idx)).mkdir()
             manager.get(idx).write(str(new / str(idx)))
             views.append(manager.get(idx).num_reg_frames())
-        (new / "checkpoint.json").write_text(json.dumps({"key": self.key, "current": current, "views": views}))
+        (new / "checkpoint.json").write_text(json.dumps({"key": self.key, "current": current, "views": views,
+                                                         "elapsed_s": round(elapsed_s, 3)}))
         shutil.rmtree(old, ignore_errors=True)
         if self.folder.exists():
             os.replace(self.folder, old)
@@ -95,6 +97,20 @@ class Checkpoint:
             except (OSError, ValueError, RuntimeError, KeyError, TypeError, IndexError):  # damaged: not used
                 manager.clear()
         return None
+
+    def elapsed_s(self) -> float:
+        """Seconds of mapping held by this checkpoint and those derived from it (the mappings of these
+        inputs that a killed run did): what the map stage of the run that resumes them adds to its own."""
+        total = 0.0
+        for folder in [self.folder, *self.folder.parent.glob(glob.escape(self.folder.name) + "-*")]:
+            if folder.suffix in (".next", ".old"):
+                continue
+            try:
+                record = json.loads((folder / "checkpoint.json").read_text())
+                total += float(record.get("elapsed_s", 0.0)) if str(record.get("key")).startswith(self.key) else 0.0
+            except (OSError, ValueError, TypeError, AttributeError):  # damaged or none: nothing to add
+                continue
+        return total
 
     def derived(self, label: str, detail: str = "") -> Checkpoint:
         """The checkpoint of another mapping of the same inputs (a remap under another seed, a retry
@@ -135,11 +151,12 @@ def incremental_mapping(db_path: Path, image_dir: Path, out_dir: Path, opts: pyc
         logger.warning("map: resuming the mapping from its checkpoint: %d models of %s views%s", len(resumed["views"]),
                        resumed["views"], "" if resumed["current"] is None else ", the last one growing")
         first_image_id = None
-    run = _Run(opts, cache, manager, direct_up_to, on_next_image, first_image_id, checkpoint)
+    run = _Run(opts, cache, manager, direct_up_to, on_next_image, first_image_id, checkpoint,
+               started=time.monotonic() - float((resumed or {}).get("elapsed_s", 0.0)))
     if cache.num_images() > 0 and (resumed is None or resumed["current"] is not None):
         run.all(resumed)
         if checkpoint is not None:
-            checkpoint.save(manager, None)
+            checkpoint.save(manager, None, time.monotonic() - run.started)
     models = {}
     for idx in range(manager.size()):
         rec = manager.get(idx)
@@ -157,9 +174,10 @@ class _Run:
     def __init__(self, opts: pycolmap.IncrementalPipelineOptions, cache: pycolmap.DatabaseCache,
                  manager: pycolmap.ReconstructionManager, direct_up_to: int,
                  on_next_image: Callable[[], None] | None, first_image_id: int | None = None,
-                 checkpoint: Checkpoint | None = None) -> None:
+                 checkpoint: Checkpoint | None = None, started: float | None = None) -> None:
         self.opts, self.cache, self.manager, self.on_next_image = opts, cache, manager, on_next_image
         self.checkpoint, self.saved_at, self.current = checkpoint, time.monotonic(), 0
+        self.started = time.monotonic() if started is None else started  # of the mapping, earlier runs included
         self.pipeline = pycolmap.IncrementalPipeline(opts, cache, manager)
         self.first_pipeline = None  # starts the first new model from a given image, then is dropped
         if first_image_id is not None:
@@ -335,7 +353,7 @@ class _Run:
                     self.spent_s["global adjustment"] - before_s)
         if self.checkpoint is not None and time.monotonic() - self.saved_at >= self.checkpoint.every_s:
             with self.timed("checkpoint"):
-                self.checkpoint.save(self.manager, self.current)
+                self.checkpoint.save(self.manager, self.current, time.monotonic() - self.started)
             self.saved_at = time.monotonic()
 
 
