@@ -133,3 +133,19 @@ def test_a_mend_its_pairs_still_contradict_is_followed_by_the_remaps(sequence, t
                                                            NUM_VIEWS, 0.0))
     recs, _, _ = mapping._map(MapConfig(), db_path, tmp_path, tmp_path, seed=0, progress=False)
     assert seeds == [0, 1] and not recs.mended and recs.remaps == 1
+
+
+def test_a_continuation_that_fails_leaves_the_first_model_to_the_remaps(sequence, tmp_path, monkeypatch, caplog):
+    """COLMAP failing inside the mend loses nothing: the first model stays and the remaps run (a stage
+    that failed there would fail again on every resume, from the same checkpoint)."""
+    rec, db_path = sequence
+    seeds = first_mapping_gives(monkeypatch, stretch_turned(rec, range(14, 17), 3.0))
+
+    def failing(*args):
+        raise colmap.ColmapError("mapper: out of memory")
+
+    monkeypatch.setattr(mapping, "_extend", failing)
+    with caplog.at_level("WARNING", logger="sara.mapping"):
+        recs, _, _ = mapping._map(MapConfig(), db_path, tmp_path, tmp_path, seed=0, progress=False)
+    assert "continuing the cut model failed (mapper: out of memory): keeping the first model" in caplog.text
+    assert seeds == [0, 1] and recs.remaps == 1 and not recs.mended and recs.largest == NUM_VIEWS

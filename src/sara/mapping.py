@@ -307,18 +307,21 @@ def _agreeing(conf: MapConfig, db_path: Path, images_root: Path, tmp: Path, seed
 
 
 def _mended(conf: MapConfig, db_path: Path, images_root: Path, tmp: Path, seed: int, progress: bool,
-            first: colmap.MappedModels, check: colmap.Agreement,
-            min_num_inliers: int) -> tuple[colmap.MappedModels, colmap.Agreement]:
-    """The first model cut at its seam and continued (`colmap.mend`), with its check, where the cut
-    keeps most of the model and the continued one is better (`_better`); else the first model."""
+            first: colmap.MappedModels, check: colmap.Agreement, min_num_inliers: int,
+            ) -> tuple[colmap.MappedModels, colmap.Agreement]:
+    """The first model cut at its seam and continued (`colmap.mend`) where that is better; else the first."""
     cut = colmap.cut_at_seam(first, check, db_path, tmp / "mend" / "cut", min_num_inliers=min_num_inliers)
     if cut is None:
         return first, check
     logger.warning("map: %d of the %d verified pairs between the views of the largest model contradict it: taking out "
                    "the %d views up to %d pairs from them (and %d cut off with them) and continuing the %d others",
                    len(check.contradicted), check.checked, cut.taken_out, colmap.SEAM_HOPS, cut.dropped, cut.kept)
-    mended, _, _ = _extend(conf, db_path, images_root, tmp / "mend", seed, progress, tmp / "mend" / "cut",
-                           min_num_inliers)
+    try:
+        mended, _, _ = _extend(conf, db_path, images_root, tmp / "mend", seed, progress, tmp / "mend" / "cut",
+                               min_num_inliers)
+    except colmap.ColmapError as exc:  # the first model stays, and the remaps follow as without the mend
+        logger.warning("map: continuing the cut model failed (%s): keeping the first model", exc)
+        return first, check
     mended.forward_start, mended.distortion_held = first.forward_start, first.distortion_held
     mended.seed, mended.mended, again = seed, True, mended.agreement(db_path, min_num_inliers)
     logger.warning("map: continued, the largest model holds %d views (%d before), %d of %d pairs contradict it",
@@ -336,12 +339,9 @@ def _better(new: colmap.MappedModels, new_check: colmap.Agreement, old: colmap.M
     many views less the other's seam (the views of the pairs contradicting it, which a mapping that
     mends the bend may rightly leave out); then more views; then fewer contradictions.
 
-    A remap that breaks the scene into pieces is not a mended bend: at 10,000 images a bent first
-    model of 9,350 views (81 contradicting pairs) was mapped again under the next seed into models of
-    117, 2,755, 2,726, 1,371, ... views (the largest contradicted too), and under the seed after it
-    into pieces whose largest, 3,167 views, no pair contradicted (0 of 7,352): the rule before this
-    one would have kept that piece and left the rounds 6,800 views to register again
-    (lab/notes/SCALE.md)."""
+    A remap that breaks the scene into pieces is not a mended bend: at 10,000 images a bent model of
+    9,350 views was mapped again into pieces whose largest, 3,167 views, no pair contradicted; keeping
+    it would have left the rounds 6,800 views to register again (lab/notes/SCALE.md)."""
     def rank(model: colmap.MappedModels, check: colmap.Agreement, other: colmap.MappedModels,
              other_check: colmap.Agreement) -> tuple[bool, bool, int, int]:
         seam = {view for pair in other_check.contradicted for view in pair}
