@@ -123,16 +123,30 @@ def test_the_mend_can_be_turned_off(sequence, tmp_path, monkeypatch):
     assert not recs.mended and recs.remaps == 1 and seeds == [0, 1]  # the same pairs again: one remap only
 
 
-def test_a_mend_its_pairs_still_contradict_is_followed_by_the_remaps(sequence, tmp_path, monkeypatch):
-    """The continued model is as contradicted as the first (here: the mend gives the bent model back):
-    the remaps run as without the mend, from the first model's seam."""
+def test_a_mend_contradicted_by_other_pairs_is_followed_by_the_remaps(sequence, tmp_path, monkeypatch):
+    """The continued model is bent elsewhere: the remaps run as without the mend, from the first
+    model's seam."""
+    rec, db_path = sequence
+    seeds = first_mapping_gives(monkeypatch, stretch_turned(rec, range(14, 17), 3.0))
+    elsewhere = stretch_turned(rec, range(4, 7), 3.0)
+    monkeypatch.setattr(mapping, "_extend", lambda *args: (colmap.MappedModels({0: elsewhere}), NUM_VIEWS, 0.0))
+    recs, _, _ = mapping._map(MapConfig(), db_path, tmp_path, tmp_path, seed=0, progress=False)
+    assert seeds == [0, 1] and recs.remaps == 1  # (the less contradicted of the three is kept)
+
+
+def test_a_mend_contradicted_by_the_same_pairs_ends_it_without_a_remap(sequence, tmp_path, monkeypatch, caplog):
+    """The same pairs contradict the model with the seam's views registered again: the pairs are wrong,
+    not the model, and a remap from scratch (hours at 10,000 images) would not help."""
     rec, db_path = sequence
     bent = stretch_turned(rec, range(14, 17), 3.0)
     seeds = first_mapping_gives(monkeypatch, bent)
     monkeypatch.setattr(mapping, "_extend", lambda *args: (colmap.MappedModels({0: pycolmap.Reconstruction(bent)}),
                                                            NUM_VIEWS, 0.0))
-    recs, _, _ = mapping._map(MapConfig(), db_path, tmp_path, tmp_path, seed=0, progress=False)
-    assert seeds == [0, 1] and not recs.mended and recs.remaps == 1
+    with caplog.at_level("WARNING", logger="sara.mapping"):
+        recs, _, _ = mapping._map(MapConfig(), db_path, tmp_path, tmp_path, seed=0, progress=False)
+    wrong = len(agreement(bent, db_path).contradicted)
+    assert seeds == [0] and recs.remaps == 0 and len(recs.agreement_check.contradicted) == wrong > 0
+    assert f"the same {wrong} pairs contradict the mended model" in caplog.text
 
 
 def test_a_continuation_that_fails_leaves_the_first_model_to_the_remaps(sequence, tmp_path, monkeypatch, caplog):

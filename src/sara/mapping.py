@@ -262,21 +262,21 @@ def _agreeing(conf: MapConfig, db_path: Path, images_root: Path, tmp: Path, seed
     verified pairs contradict it (`_contradicted`), then map again, at most `map.contradicted_remaps`
     times, while the best so far is contradicted: under the next seed, on `REMAP_THREADS` threads,
     the first model started from the view in most of the contradicting pairs; keeps the best. When a
-    mapping is contradicted by exactly the pairs that contradicted the one before it, the fault is in
-    those pairs' matches, not in how the mapper built the model, and no more mappings follow
-    (dtu-scan24 under exhaustive matching: the same 12 pairs under seeds 0 and 1, CAPTURES.md 15).
+    mapping (or the mend) is contradicted by exactly the pairs that contradicted the one before it, the
+    fault is in those pairs' matches, not in how the mapper built the model, and no more mappings
+    follow (dtu-scan24 under exhaustive matching: the same 12 pairs under seeds 0 and 1, CAPTURES.md 15).
 
     The incremental mapper can bend a model where the views pass a place twice: the pairs that
-    would close the loop never join a track, so nothing in the mapper sees them (1,000-image
-    synthetic street, first graph of 2,421 pairs, both cores: seeds 0 and 1 bent). The start at the
-    seam is meant to hold both passes before drift builds up; what is shown is the single thread's
-    effect (`REMAP_THREADS`)."""
+    would close the loop never join a track, so nothing in the mapper sees them (lab/notes/SCALE.md)."""
     best, best_check = first, first.agreement(db_path, min_num_inliers)
-    best.seed, remaps, check = seed, 0, best_check
+    best.seed, remaps, check, same = seed, 0, best_check, False
     earlier = check  # the check of the model mapped last before the next one
     if _contradicted(best_check) and conf.mend_seam:
-        best, best_check = _mended(conf, db_path, images_root, tmp, seed, progress, first, check, min_num_inliers)
-    while _contradicted(best_check) and remaps < conf.contradicted_remaps:
+        best, best_check, mend = _mended(conf, db_path, images_root, tmp, seed, progress, first, check, min_num_inliers)
+        if same := mend is not None and set(mend.contradicted) == set(check.contradicted):
+            logger.warning("map: the same %d pairs contradict the mended model: the fault is in those pairs, not in "
+                           "how the mapper built the model; no mapping again", len(check.contradicted))
+    while not same and _contradicted(best_check) and remaps < conf.contradicted_remaps:
         remaps += 1
         start = check.most_contradicted_view()  # the last model's: a model no pair contradicts ends the loop
         logger.warning("map: %d of the %d verified pairs between the views of the largest model contradict it "
@@ -308,11 +308,11 @@ def _agreeing(conf: MapConfig, db_path: Path, images_root: Path, tmp: Path, seed
 
 def _mended(conf: MapConfig, db_path: Path, images_root: Path, tmp: Path, seed: int, progress: bool,
             first: colmap.MappedModels, check: colmap.Agreement, min_num_inliers: int,
-            ) -> tuple[colmap.MappedModels, colmap.Agreement]:
-    """The first model cut at its seam and continued (`colmap.mend`) where that is better; else the first."""
+            ) -> tuple[colmap.MappedModels, colmap.Agreement, colmap.Agreement | None]:
+    """(the first model or, where better, it cut at its seam and continued, its check, the continued one's)."""
     cut = colmap.cut_at_seam(first, check, db_path, tmp / "mend" / "cut", min_num_inliers=min_num_inliers)
     if cut is None:
-        return first, check
+        return first, check, None
     logger.warning("map: %d of the %d verified pairs between the views of the largest model contradict it: taking out "
                    "the %d views up to %d pairs from them (and %d cut off with them) and continuing the %d others",
                    len(check.contradicted), check.checked, cut.taken_out, colmap.SEAM_HOPS, cut.dropped, cut.kept)
@@ -321,12 +321,12 @@ def _mended(conf: MapConfig, db_path: Path, images_root: Path, tmp: Path, seed: 
                                min_num_inliers)
     except colmap.ColmapError as exc:  # the first model stays, and the remaps follow as without the mend
         logger.warning("map: continuing the cut model failed (%s): keeping the first model", exc)
-        return first, check
+        return first, check, None
     mended.forward_start, mended.distortion_held = first.forward_start, first.distortion_held
     mended.seed, mended.mended, again = seed, True, mended.agreement(db_path, min_num_inliers)
     logger.warning("map: continued, the largest model holds %d views (%d before), %d of %d pairs contradict it",
                    mended.largest, first.largest, len(again.contradicted), again.checked)
-    return (mended, again) if _better(mended, again, first, check) else (first, check)
+    return (mended, again, again) if _better(mended, again, first, check) else (first, check, again)
 
 
 def _contradicted(check: colmap.Agreement) -> bool:
