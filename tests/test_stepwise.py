@@ -229,37 +229,8 @@ def test_an_ended_checkpoint_gives_its_models_and_another_key_is_ignored(databas
 
 def test_the_map_stage_keeps_the_checkpoint_of_a_killed_run_and_removes_it_when_done(database: Path,
                                                                                        tmp_path: Path, monkeypatch):
-    from sara import mapping
-    from sara.config import make_config
-
-    out = tmp_path / "out"
-    out.mkdir()
-    conf = make_config("sift-offline", {"map.ba_direct_max_images": 5000, "map.checkpoint_minutes": 1e-9,
-                                        "map.num_threads": 1, "map.contradicted_remaps": 0}).map
-    register = stepwise._Run.register_next
-    calls = []
-
-    def stopping(self, *args):
-        calls.append(1)
-        if len(calls) == 10:
-            raise KeyboardInterrupt
-        return register(self, *args)
-
-    monkeypatch.setattr(stepwise._Run, "register_next", stopping)
-    with pytest.raises(KeyboardInterrupt):
-        mapping.run(conf, database, database.parent / "images", out, progress=False)
-    kept = out / ".sara" / mapping.CHECKPOINT
-    assert json.loads((kept / "checkpoint.json").read_text())["current"] == 0
-    assert not (out / "sparse").exists()
-    monkeypatch.setattr(stepwise._Run, "register_next", register)
-    mapping.run(conf, database, database.parent / "images", out, progress=False)
-    assert len(pycolmap.Reconstruction(str(out / "sparse" / "0")).reg_image_ids()) == 20
-    assert not kept.exists()
-
-
-def test_a_resumed_mapping_counts_the_time_mapped_before_the_kill(database: Path, tmp_path: Path, monkeypatch):
-    """The checkpoint keeps how long the mapping ran; the map stage that resumes it records that time
-    with its own (else a mapping of hours killed near its end would say it took seconds)."""
+    """... and the stage that resumes it records the time mapped before the kill with its own (the
+    checkpoint keeps it: else a mapping of hours killed near its end would say it took minutes)."""
     import time
 
     from sara import mapping
@@ -283,13 +254,17 @@ def test_a_resumed_mapping_counts_the_time_mapped_before_the_kill(database: Path
     monkeypatch.setattr(stepwise._Run, "register_next", slow_then_stopped)
     with pytest.raises(KeyboardInterrupt):
         mapping.run(conf, database, database.parent / "images", out, progress=False)
-    before_s = json.loads((out / ".sara" / mapping.CHECKPOINT / "checkpoint.json").read_text())["elapsed_s"]
-    assert before_s >= 1.0  # most of the nine slow registrations, up to the last global adjustment
+    kept = out / ".sara" / mapping.CHECKPOINT
+    record = json.loads((kept / "checkpoint.json").read_text())
+    assert record["current"] == 0 and record["elapsed_s"] >= 1.0  # most of the nine slow registrations
+    assert not (out / "sparse").exists()
     monkeypatch.setattr(stepwise._Run, "register_next", register)
     tic = time.perf_counter()
     mapping.run(conf, database, database.parent / "images", out, progress=False)
     resumed_s = time.perf_counter() - tic
-    assert before_s <= records.done_info(out, "map")["time_s"] <= before_s + resumed_s
+    assert len(pycolmap.Reconstruction(str(out / "sparse" / "0")).reg_image_ids()) == 20
+    assert not kept.exists()
+    assert record["elapsed_s"] <= records.done_info(out, "map")["time_s"] <= record["elapsed_s"] + resumed_s
 
 
 def test_a_damaged_checkpoint_is_mapped_from_the_start(database: Path, tmp_path: Path):
