@@ -96,7 +96,7 @@ def test_a_first_model_wrong_in_one_stretch_is_mended_without_mapping_again(sequ
     rec, db_path = sequence
     seeds = first_mapping_gives(monkeypatch, stretch_turned(rec, range(14, 17), 3.0))
     with caplog.at_level("WARNING", logger="sara.mapping"):
-        mapping.run(MapConfig(), db_path, tmp_path, tmp_path / "out", seed=0, progress=False)
+        mapping.run(MapConfig(num_threads=1), db_path, tmp_path, tmp_path / "out", seed=0, progress=False)
     assert seeds == [0]
     info = records.done_info(tmp_path / "out", "map")
     assert info["mended"] and info["remaps"] == 0 and info["num_registered"] == NUM_VIEWS
