@@ -53,15 +53,14 @@ def cut_at_seam(models: MappedModels, check: Agreement, db_path: Path, out: Path
     rec = pycolmap.Reconstruction(max(models.reconstructions.values(), key=lambda r: r.num_reg_images()))
     posed = {img.name: image_id for image_id, img in rec.images.items() if img.has_pose}
     around = _neighbourhood(seam & posed.keys(), _neighbours(db_path, posed.keys(), min_num_inliers), hops)
-    for name in around:
-        rec.deregister_frame(rec.image(posed[name]).frame_id)
+    for frame_id in {rec.image(posed[name]).frame_id for name in around}:  # a rig's images share a frame
+        rec.deregister_frame(frame_id)
     parts = _parts(rec)
     kept = parts[0] if parts else set()
     if len(kept) < MIN_KEPT_SHARE * len(posed):
         return None
-    for part in parts[1:]:
-        for image_id in part:
-            rec.deregister_frame(rec.image(image_id).frame_id)
+    for frame_id in {rec.image(image_id).frame_id for part in parts[1:] for image_id in part}:
+        rec.deregister_frame(frame_id)
     out.mkdir(parents=True, exist_ok=True)
     rec.write(str(out))
     return Cut(len(around), len(posed) - len(around) - len(kept), len(kept))
