@@ -232,11 +232,11 @@ def reconstruction(data: RunData) -> str:
 
 
 def _first_model(stage: dict) -> str:
-    """What the map stage did with a first model its pairs contradicted (empty when none was)."""
-    contradicted, checked = stage.get("first_model_pairs_contradicted"), stage.get("first_model_pairs_checked")
+    """What the map stage did with a first model its pairs contradicted (empty when none was). The
+    record's pair counts are the kept model's check, not the first model's, so they are not shown."""
     if stage.get("mended"):
-        return (f"contradicted by {contradicted} of its {checked} verified pairs: mended at the seam (the views "
-                "around those pairs taken out and registered again; map.mend_seam)")
+        return ("contradicted by its verified pairs: mended at the seam (the views around those pairs taken out "
+                "and registered again; map.mend_seam)")
     if stage.get("remaps"):
         return (f"contradicted by its verified pairs: mapped again {stage['remaps']} time(s) under other seeds, "
                 f"seed {stage.get('seed')} kept (map.contradicted_remaps)")
