@@ -13,6 +13,7 @@ thread took about 90 (lab/notes/SCALE.md, "Mending the seam by cutting it out").
 
 from __future__ import annotations
 
+from collections.abc import Set
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -66,7 +67,7 @@ def cut_at_seam(models: MappedModels, check: Agreement, db_path: Path, out: Path
     return Cut(len(around), len(posed) - len(around) - len(kept), len(kept))
 
 
-def _neighbours(db_path: Path, names: set[str] | frozenset[str], min_num_inliers: int) -> dict[str, set[str]]:
+def _neighbours(db_path: Path, names: Set[str], min_num_inliers: int) -> dict[str, set[str]]:
     """Name -> the names it shares a verified pair with (at least `min_num_inliers` inliers), among `names`."""
     out: dict[str, set[str]] = {}
     with open_pycolmap_database(db_path) as db:
