@@ -1,5 +1,5 @@
 """A model against the verified pairs between its views (`sara.colmap.consistency`), and the first
-mapping done again under another seed when its model is contradicted (`sara.mapping._agreeing`)."""
+mapping done again under another seed when its model is contradicted (`sara.map_retries.agreeing`)."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import numpy as np
 import pycolmap
 import pytest
 
-from sara import colmap, mapping
+from sara import colmap, map_retries, mapping
 from sara.colmap.consistency import agreement
 from sara.config import MapConfig
 from sara.io import records
@@ -92,7 +92,7 @@ def test_a_contradicted_first_model_is_mapped_again_and_the_agreeing_one_kept(sc
         recs, _, _ = mapping._map(MapConfig(), db_path, tmp_path, tmp_path, seed=7, progress=False)
     assert seeds == [7, 8] and recs.seed == 8 and recs.remaps == 1
     # the remap starts from the view the contradicting pairs share, on one thread
-    assert starts == [(None, MapConfig().num_threads), (rec.image(3).name, mapping.REMAP_THREADS)]
+    assert starts == [(None, MapConfig().num_threads), (rec.image(3).name, map_retries.REMAP_THREADS)]
     assert recs.agreement_check.contradicted == [] and recs.reconstructions[0] is rec
     assert "5 of the 15 verified pairs between the views of the largest model contradict it" in caplog.text
 
@@ -103,12 +103,12 @@ def test_a_large_model_is_contradicted_by_a_count_of_pairs_its_share_would_hide(
     def check(contradicted: int, checked: int) -> colmap.Agreement:
         return colmap.Agreement(checked, [(f"a{i}", f"b{i}") for i in range(contradicted)])
 
-    assert mapping.CONTRADICTED_PAIRS == 20 and mapping.CONTRADICTED_SHARE == 0.005
-    assert mapping._contradicted(check(76, 21_795))  # SARA's bent first model at 10,000 images (0.35%)
-    assert mapping._contradicted(check(45, 15_577))  # sequential + loop detection's at 3,000 (0.29%)
-    assert mapping._contradicted(check(20, 100_000)) and not mapping._contradicted(check(19, 100_000))
-    assert mapping._contradicted(check(12, 683))  # a share above 0.5% (dtu-scan24, exhaustive)
-    assert not mapping._contradicted(check(2, 2_023)) and not mapping._contradicted(check(0, 0))
+    assert map_retries.CONTRADICTED_PAIRS == 20 and map_retries.CONTRADICTED_SHARE == 0.005
+    assert map_retries.contradicted(check(76, 21_795))  # SARA's bent first model at 10,000 images (0.35%)
+    assert map_retries.contradicted(check(45, 15_577))  # sequential + loop detection's at 3,000 (0.29%)
+    assert map_retries.contradicted(check(20, 100_000)) and not map_retries.contradicted(check(19, 100_000))
+    assert map_retries.contradicted(check(12, 683))  # a share above 0.5% (dtu-scan24, exhaustive)
+    assert not map_retries.contradicted(check(2, 2_023)) and not map_retries.contradicted(check(0, 0))
 
 
 def test_an_agreeing_first_model_is_not_mapped_again(scene, tmp_path, monkeypatch):
@@ -253,8 +253,8 @@ def test_an_agreeing_remap_that_lost_more_views_than_the_seam_holds_does_not_rep
 
     seam = colmap.Agreement(21_808, [(f"a{i}", f"b{i}") for i in range(81)])  # 162 views
     clean = colmap.Agreement(4_000, [])
-    assert not mapping._better(views(3_167), clean, views(9_350), seam)
-    assert mapping._better(views(9_350), seam, views(3_167), clean)
-    assert mapping._better(views(9_350 - 162), clean, views(9_350), seam)  # mended, the seam's views left out
-    assert not mapping._better(views(9_350 - 163), clean, views(9_350), seam)
-    assert mapping._better(views(1), clean, views(0), clean)  # any model beats none
+    assert not map_retries.better(views(3_167), clean, views(9_350), seam)
+    assert map_retries.better(views(9_350), seam, views(3_167), clean)
+    assert map_retries.better(views(9_350 - 162), clean, views(9_350), seam)  # mended, the seam's views left out
+    assert not map_retries.better(views(9_350 - 163), clean, views(9_350), seam)
+    assert map_retries.better(views(1), clean, views(0), clean)  # any model beats none

@@ -1,4 +1,4 @@
-"""A contradicted first model mended at its seam (`sara.colmap.mend`, `sara.mapping._mended`): the
+"""A contradicted first model mended at its seam (`sara.colmap.mend`, `sara.map_retries.mended`): the
 views around the contradicting pairs taken out, the rest continued by COLMAP's mapper."""
 
 from __future__ import annotations

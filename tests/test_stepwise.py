@@ -281,7 +281,7 @@ def test_a_damaged_checkpoint_is_mapped_from_the_start(database: Path, tmp_path:
 def test_a_remap_of_a_killed_run_resumes_from_its_own_checkpoint(database: Path, tmp_path: Path, monkeypatch):
     """A first model found contradicted is mapped again under the next seed; a run killed during that
     remap goes on from the remap's checkpoint, the first mapping's (ended) restored as it was."""
-    from sara import mapping
+    from sara import map_retries, mapping
     from sara.config import make_config
     from sara.io import records
 
@@ -289,7 +289,7 @@ def test_a_remap_of_a_killed_run_resumes_from_its_own_checkpoint(database: Path,
     out.mkdir()
     conf = make_config("sift-offline", {"map.ba_direct_max_images": 5000, "map.checkpoint_minutes": 1e-9,
                                         "map.num_threads": 1, "map.contradicted_remaps": 1}).map
-    monkeypatch.setattr(mapping, "_contradicted", lambda check: True)  # every model found bent: one remap
+    monkeypatch.setattr(map_retries, "contradicted", lambda check: True)  # every model found bent: one remap
     register, incremental = stepwise._Run.register_next, mapping._incremental
     registered, remapping = [], []
 

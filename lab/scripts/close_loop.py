@@ -1,7 +1,7 @@
 """Experiment: can a bent model be mended in place instead of mapped again?
 
 A first model the mapper bent (its verified pairs across the seam contradict it) is mapped again
-under another seed, on one thread (`sara.mapping._agreeing`): at 10,000 images over an hour. This
+under another seed, on one thread (`sara.map_retries.agreeing`): at 10,000 images over an hour. This
 tries the cheap alternative on a model folder and the database it was mapped from: merge the tracks
 that the correspondence graph links, with a reprojection limit wide enough for the points of the
 two passes of a bent model to be joined, then COLMAP's iterative global refinement (adjustment,

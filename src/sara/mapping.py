@@ -21,7 +21,7 @@ from typing import Any
 
 from tqdm import tqdm
 
-from . import colmap
+from . import colmap, map_retries
 from .colmap import refine as colmap_refine
 from .colmap.stepwise import Checkpoint
 from .config import MapConfig
@@ -107,7 +107,7 @@ def _mapped_by(record: dict[str, Any] | None) -> str | None:
     return ((record or {}).get("info") or {}).get("mapper")
 
 
-#: what the record says of the first mapping's check (`_agreeing`); a continued model keeps it
+#: what the record says of the first mapping's check (`map_retries.agreeing`); a continued model keeps it
 FIRST_MODEL_KEYS = ("seed", "remaps", "mended", "first_model_pairs_checked", "first_model_pairs_contradicted")
 
 
@@ -136,13 +136,8 @@ def _map(conf: MapConfig, db_path: Path, images_root: Path, tmp: Path, seed: int
         recs = _incremental(conf, db_path, images_root, tmp, seed, progress, num_images, input_model,
                             checkpoint=checkpoint)
         if input_model is None:
-            recs = _distortion_held(conf, db_path, images_root, tmp, seed, progress, num_images, recs,
-                                    min_num_inliers, checkpoint)
-            conf = replace(conf, refine_distortion=conf.refine_distortion and not recs.distortion_held)
-            recs = _forward_start(conf, db_path, images_root, tmp, seed, progress, num_images, recs,
-                                  min_num_inliers, checkpoint)
-            recs = _agreeing(conf, db_path, images_root, tmp, seed, progress, num_images, recs, min_num_inliers,
-                             checkpoint)
+            recs = map_retries.set_right(_attempts(conf, db_path, images_root, tmp, seed, progress, num_images,
+                                                   min_num_inliers, checkpoint), recs)
     elif conf.mapper == "global":
         recs = _global(conf, db_path, images_root, tmp, seed, progress, min_num_inliers, checkpoint)
     else:
@@ -153,13 +148,14 @@ def _map(conf: MapConfig, db_path: Path, images_root: Path, tmp: Path, seed: int
 def _global(conf: MapConfig, db_path: Path, images_root: Path, tmp: Path, seed: int, progress: bool,
             min_num_inliers: int, checkpoint: Checkpoint | None = None) -> colmap.MappedModels:
     """COLMAP's global mapper, its largest model checked against its own verified pairs; when they
-    contradict it (`_contradicted`) and `map.contradicted_remaps` allows, the incremental mapper maps
-    the scene too and the better model is kept (`_better`). On a sparse graph the global mapper glues
-    stretches that few pairs join at wrong rotations, where the incremental one splits the scene
-    (200-image synthetic street, SARA's pairs: 126 of 455 pairs off by over 10 degrees, none wrong)."""
+    contradict it (`map_retries.contradicted`) and `map.contradicted_remaps` allows, the incremental
+    mapper maps the scene too and the better model is kept (`map_retries.better`). On a sparse graph
+    the global mapper glues stretches that few pairs join at wrong rotations, where the incremental
+    one splits the scene (200-image synthetic street, SARA's pairs: 126 of 455 pairs off by over 10
+    degrees, none wrong)."""
     recs = colmap.global_mapping(db_path, images_root, tmp, seed=seed, num_threads=conf.num_threads)
     recs.seed, recs.agreement_check = seed, recs.agreement(db_path, min_num_inliers)
-    if not _contradicted(recs.agreement_check) or conf.contradicted_remaps == 0:
+    if not map_retries.contradicted(recs.agreement_check) or conf.contradicted_remaps == 0:
         return recs
     logger.warning("map: %d of the %d verified pairs between the views of the global mapper's largest model "
                    "contradict it: mapping with the incremental mapper as well and keeping the model its pairs "
@@ -169,186 +165,7 @@ def _global(conf: MapConfig, db_path: Path, images_root: Path, tmp: Path, seed: 
                        progress, min_num_inliers=min_num_inliers,
                        checkpoint=checkpoint.derived("incremental") if checkpoint else None)
     again.mapper = "incremental"
-    return again if _better(again, again.agreement_check, recs, recs.agreement_check) else recs
-
-
-def _distortion_held(conf: MapConfig, db_path: Path, images_root: Path, tmp: Path, seed: int, progress: bool,
-                     num_images: int, first: colmap.MappedModels, min_num_inliers: int,
-                     checkpoint: Checkpoint | None = None) -> colmap.MappedModels:
-    """Map again with the cameras' distortion held, when it was refined and the first model holds less
-    than `FORWARD_RETRY_SHARE` of the views joined by verified pairs; keeps the mapping whose largest
-    model holds more views (`_better`), and the retries and continuations after it hold it too. Before
-    the forward retry: where holding the distortion lets the model grow, that mapping is saved.
-
-    Where few points pin the lens down, the adjustments can bend it to make up for a wrong guess of
-    the camera: on a low-texture stand-in (211 keypoints per image, its principal point 9 px off the
-    centre) the radial term ran to -0.7 to -1.6 in every piece and the first models held 7-16 of 47
-    views; held, all 47 in one model under each of four namings (lab/notes/CAPTURES.md, 23-24)."""
-    if not conf.refine_distortion or first.largest == 0:
-        return first
-    reachable = max(colmap.verified_graph(db_path, min_num_inliers)[2], default=0)
-    if first.largest >= FORWARD_RETRY_SHARE * reachable:
-        return first
-    logger.info("map: the first model holds %d of the %d views joined by verified pairs: mapping again with the "
-                "lens distortion held (map.refine_distortion)", first.largest, reachable)
-    folder = tmp / "distortion-held"
-    folder.mkdir()
-    again = _incremental(replace(conf, refine_distortion=False), db_path, images_root, folder, seed, progress,
-                         num_images, None, checkpoint=checkpoint.derived(folder.name) if checkpoint else None)
-    again.distortion_held = True
-    if not _better(again, again.agreement(db_path, min_num_inliers), first, first.agreement(db_path, min_num_inliers)):
-        return first
-    logger.warning("map: with the lens distortion held the largest model holds %d views (refined: %d); kept, "
-                   "and held in the rounds' mappings too", again.largest, first.largest)
-    return again
-
-
-#: a first model holding less than this share of the views that verified pairs join is a start
-#: that could not grow: the mapper is tried again from a forward pair
-FORWARD_RETRY_SHARE = 0.5
-
-
-def _forward_start(conf: MapConfig, db_path: Path, images_root: Path, tmp: Path, seed: int, progress: bool,
-                   num_images: int, first: colmap.MappedModels, min_num_inliers: int,
-                   checkpoint: Checkpoint | None = None) -> colmap.MappedModels:
-    """Map again with a start from views that moved along their viewing direction allowed, when
-    the first mapping built no model, or a largest model of less than `FORWARD_RETRY_SHARE` of the
-    views joined by verified pairs; keeps the result whose largest model holds more views.
-
-    A camera driving or walking straight ahead gives COLMAP no start it accepts (every pair moved
-    forward), or only one between two views where the path turns, from which the model often
-    cannot grow (kitti-seq1 on SARA's pairs: 2, 5 and 51 of 51 views under seeds 0, 1 and 2)."""
-    if first.largest > 0:
-        reachable = max(colmap.verified_graph(db_path, min_num_inliers)[2], default=0)
-        if first.largest >= FORWARD_RETRY_SHARE * reachable:
-            return first
-        logger.info("map: the first model holds %d of the %d views joined by verified pairs: mapping again from a "
-                    "forward pair", first.largest, reachable)
-    else:
-        logger.info("map: COLMAP found no pair of views to start from that moved sideways enough; the camera "
-                    "moves along its viewing direction (driving, walking ahead): starting from a forward pair")
-    retry_dir = tmp / "forward" if first.largest > 0 else tmp
-    retry_dir.mkdir(exist_ok=True)
-    again = _incremental(conf, db_path, images_root, retry_dir, seed, progress, num_images, None, forward_start=True,
-                         checkpoint=checkpoint.derived("forward") if checkpoint else None)
-    if again.largest <= first.largest:
-        return first
-    again.forward_start, again.distortion_held = True, first.distortion_held
-    return again
-
-
-#: a first model contradicted by more than this share of the verified pairs between its views
-#: (`colmap.consistency`) is mapped again under another random seed. On the 1,000-image synthetic
-#: street two bent first models had 1.9% and 3.2%, good ones from the same matches none.
-CONTRADICTED_SHARE = 0.005
-#: ... or by this many, whatever their share: a bend contradicts the pairs that close the loop across
-#: its seam, as many in a large model as in a small one (bent: 37-76 pairs, 45 of 15,577 at 3,000
-#: images, 76 of 21,795 at 10,000; good: 0-2, and 12 wrong pairs on dtu-scan24; lab/notes/SCALE.md)
-CONTRADICTED_PAIRS = 20
-
-
-#: threads of a mapping done again because the first model was contradicted. With one thread the
-#: mapper's result depends on its seed alone: on the 1,000-image synthetic street's first graph six
-#: seeds gave six good models single-threaded (0 of 2,052 pairs contradicting), where with both cores
-#: of the idle machine seeds 0 and 1 gave bent ones and the same seed under load a good one; on the
-#: idle 2-core machine seed 0 took 118 s on one thread, 144 s (bent) on two (lab/notes/SCALE.md)
-REMAP_THREADS = 1
-
-
-def _agreeing(conf: MapConfig, db_path: Path, images_root: Path, tmp: Path, seed: int, progress: bool,
-              num_images: int, first: colmap.MappedModels, min_num_inliers: int,
-              checkpoint: Checkpoint | None = None) -> colmap.MappedModels:
-    """Mend the first mapping's largest model at its seam (`_mended`, if `map.mend_seam`) when its own
-    verified pairs contradict it (`_contradicted`), then map again, at most `map.contradicted_remaps`
-    times, while the best so far is contradicted: under the next seed, on `REMAP_THREADS` threads,
-    the first model started from the view in most of the contradicting pairs; keeps the best. When a
-    mapping (or the mend) is contradicted by exactly the pairs that contradicted the one before it, the
-    fault is in those pairs' matches, not in how the mapper built the model, and no more mappings
-    follow (dtu-scan24 under exhaustive matching: the same 12 pairs under seeds 0 and 1, CAPTURES.md 15).
-
-    The incremental mapper can bend a model where the views pass a place twice: the pairs that
-    would close the loop never join a track, so nothing in the mapper sees them (lab/notes/SCALE.md)."""
-    best, best_check = first, first.agreement(db_path, min_num_inliers)
-    best.seed, remaps, check, same = seed, 0, best_check, False
-    earlier = check  # the check of the model mapped last before the next one
-    if _contradicted(best_check) and conf.mend_seam:
-        best, best_check, mend = _mended(conf, db_path, images_root, tmp, seed, progress, first, check, min_num_inliers)
-        if same := mend is not None and set(mend.contradicted) == set(check.contradicted):
-            logger.warning("map: the same %d pairs contradict the mended model: the fault is in those pairs, not in "
-                           "how the mapper built the model; no mapping again", len(check.contradicted))
-    while not same and _contradicted(best_check) and remaps < conf.contradicted_remaps:
-        remaps += 1
-        start = check.most_contradicted_view()  # the last model's: a model no pair contradicts ends the loop
-        logger.warning("map: %d of the %d verified pairs between the views of the largest model contradict it "
-                       "(their matches lie more than %.0f px off its epipolar lines): mapping again under seed %d, "
-                       "starting from %s", len(check.contradicted), check.checked, colmap.CONTRADICTION_PX,
-                       seed + remaps, start)
-        folder = tmp / f"seed-{seed + remaps}"
-        folder.mkdir()
-        colmap.set_seed(seed + remaps)
-        again = _incremental(replace(conf, num_threads=REMAP_THREADS), db_path, images_root, folder, seed + remaps,
-                             progress, num_images, None, forward_start=first.forward_start, first_image=start,
-                             checkpoint=checkpoint.derived(folder.name, f"{start}") if checkpoint else None)
-        again.forward_start, again.seed = first.forward_start, seed + remaps
-        again.distortion_held = first.distortion_held
-        check = again.agreement(db_path, min_num_inliers)
-        logger.warning("map: under seed %d the largest model holds %d views, %d of %d pairs contradict it",
-                       seed + remaps, again.largest, len(check.contradicted), check.checked)
-        if _better(again, check, best, best_check):
-            best, best_check = again, check
-        if set(check.contradicted) == set(earlier.contradicted):
-            logger.warning("map: the same %d pairs contradict the model under seed %d: the fault is in those "
-                           "pairs, not in how the mapper built the model; no more mappings", len(check.contradicted),
-                           seed + remaps)
-            break
-        earlier = check
-    best.agreement_check, best.remaps = best_check, remaps
-    return best
-
-
-def _mended(conf: MapConfig, db_path: Path, images_root: Path, tmp: Path, seed: int, progress: bool,
-            first: colmap.MappedModels, check: colmap.Agreement, min_num_inliers: int,
-            ) -> tuple[colmap.MappedModels, colmap.Agreement, colmap.Agreement | None]:
-    """(the first model or, where better, it cut at its seam and continued, its check, the continued one's)."""
-    cut = colmap.cut_at_seam(first, check, db_path, tmp / "mend" / "cut", min_num_inliers=min_num_inliers)
-    if cut is None:
-        return first, check, None
-    logger.warning("map: %d of the %d verified pairs between the views of the largest model contradict it: taking out "
-                   "the %d views up to %d pairs from them (and %d cut off with them) and continuing the %d others",
-                   len(check.contradicted), check.checked, cut.taken_out, colmap.SEAM_HOPS, cut.dropped, cut.kept)
-    try:
-        mended, _, _ = _extend(conf, db_path, images_root, tmp / "mend", seed, progress, tmp / "mend" / "cut",
-                               min_num_inliers)
-    except colmap.ColmapError as exc:  # the first model stays, and the remaps follow as without the mend
-        logger.warning("map: continuing the cut model failed (%s): keeping the first model", exc)
-        return first, check, None
-    mended.forward_start, mended.distortion_held = first.forward_start, first.distortion_held
-    mended.seed, mended.mended, again = seed, True, mended.agreement(db_path, min_num_inliers)
-    logger.warning("map: continued, the largest model holds %d views (%d before), %d of %d pairs contradict it",
-                   mended.largest, first.largest, len(again.contradicted), again.checked)
-    return (mended, again, again) if _better(mended, again, first, check) else (first, check, again)
-
-
-def _contradicted(check: colmap.Agreement) -> bool:
-    return check.share > CONTRADICTED_SHARE or len(check.contradicted) >= CONTRADICTED_PAIRS
-
-
-def _better(new: colmap.MappedModels, new_check: colmap.Agreement, old: colmap.MappedModels,
-            old_check: colmap.Agreement) -> bool:
-    """Any model beats none; a model its pairs do not contradict beats one they do, when it holds as
-    many views less the other's seam (the views of the pairs contradicting it, which a mapping that
-    mends the bend may rightly leave out); then more views; then fewer contradictions.
-
-    A remap that breaks the scene into pieces is not a mended bend: at 10,000 images a bent model of
-    9,350 views was mapped again into pieces whose largest, 3,167 views, no pair contradicted; keeping
-    it would have left the rounds 6,800 views to register again (lab/notes/SCALE.md)."""
-    def rank(model: colmap.MappedModels, check: colmap.Agreement, other: colmap.MappedModels,
-             other_check: colmap.Agreement) -> tuple[bool, bool, int, int]:
-        seam = {view for pair in other_check.contradicted for view in pair}
-        sound = not _contradicted(check) and model.largest >= other.largest - len(seam)
-        return model.largest > 0, sound, model.largest, -len(check.contradicted)
-
-    return rank(new, new_check, old, old_check) > rank(old, old_check, new, new_check)
+    return again if map_retries.better(again, again.agreement_check, recs, recs.agreement_check) else recs
 
 
 def _incremental(conf: MapConfig, db_path: Path, images_root: Path, tmp: Path, seed: int, progress: bool,
@@ -364,6 +181,20 @@ def _incremental(conf: MapConfig, db_path: Path, images_root: Path, tmp: Path, s
             ba_global_refinements=ba_global_refinements(conf, num_images),
             direct_solver_up_to=ba_direct_max_images(conf, num_images), first_image=first_image,
             checkpoint=checkpoint, refine_extra_params=conf.refine_distortion)
+
+
+def _attempts(conf: MapConfig, db_path: Path, images_root: Path, tmp: Path, seed: int, progress: bool,
+              num_images: int, min_num_inliers: int, checkpoint: Checkpoint | None) -> map_retries.Attempts:
+    """The ways of mapping again after the first mapping (`map_retries`): this stage's own."""
+    def incremental(conf: MapConfig, folder: Path, seed: int, *, forward_start: bool = False,
+                    first_image: str | None = None, checkpoint: Checkpoint | None = None) -> colmap.MappedModels:
+        return _incremental(conf, db_path, images_root, folder, seed, progress, num_images, None,
+                            forward_start=forward_start, first_image=first_image, checkpoint=checkpoint)
+
+    def extend(conf: MapConfig, folder: Path, model: Path) -> colmap.MappedModels:
+        return _extend(conf, db_path, images_root, folder, seed, progress, model, min_num_inliers)[0]
+
+    return map_retries.Attempts(conf, db_path, tmp, seed, min_num_inliers, checkpoint, incremental, extend)
 
 
 def _extend(conf: MapConfig, db_path: Path, images_root: Path, tmp: Path, seed: int, progress: bool,
