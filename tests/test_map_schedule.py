@@ -193,7 +193,7 @@ def test_a_first_model_that_could_not_grow_is_mapped_again_with_the_distortion_h
 def test_the_rounds_continue_a_model_mapped_with_the_distortion_held_with_it_held(monkeypatch, tmp_path: Path):
     """The map stage records that its model was mapped with the distortion held; a continuation of
     that model (the rounds' mappings) holds it too, and the record keeps saying so."""
-    from sara import mapping
+    from sara import colmap, mapping
     from sara.colmap.sfm import MappedModels
     from sara.io import records
 
@@ -206,6 +206,7 @@ def test_the_rounds_continue_a_model_mapped_with_the_distortion_held_with_it_hel
 
     monkeypatch.setattr(mapping, "_extend", fake_extend)
     monkeypatch.setattr(MappedModels, "write_by_size", lambda self, folder: [5])
+    monkeypatch.setattr(MappedModels, "agreement", lambda self, db, n: colmap.Agreement(10))
     for held in (True, False):
         out = tmp_path / str(held)
         records.mark_done(out, mapping.STAGE, "before", {"mapper": "incremental", "distortion_held": held})

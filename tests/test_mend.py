@@ -163,3 +163,48 @@ def test_a_continuation_that_fails_leaves_the_first_model_to_the_remaps(sequence
         recs, _, _ = mapping._map(MapConfig(), db_path, tmp_path, tmp_path, seed=0, progress=False)
     assert "continuing the cut model failed (mapper: out of memory): keeping the first model" in caplog.text
     assert seeds == [0, 1] and recs.remaps == 1 and not recs.mended and recs.largest == NUM_VIEWS
+
+
+@pytest.mark.parametrize("mend_seam", [True, False])
+def test_a_rounds_continuation_bent_in_one_stretch_is_mended_too(sequence, tmp_path, monkeypatch, caplog, mend_seam):
+    """A round continues the model (`input_model`); where the continued model is bent in a stretch, its
+    pairs contradict it and it is mended as a first model is: every view back, no pair contradicting,
+    and the record says so. With the mend off it is kept as it is, the contradicting pairs counted."""
+    rec, db_path = sequence
+    start = tmp_path / "start"
+    start.mkdir()
+    rec.write(str(start))
+    real, calls = mapping._extend, []
+
+    def bent_then_real(conf, db, images, tmp, seed, progress, input_model, min_num_inliers):
+        calls.append(input_model)
+        if len(calls) == 1:  # the round's continuation
+            return colmap.MappedModels({0: stretch_turned(rec, range(14, 17), 3.0)}), NUM_VIEWS, 0.0
+        return real(conf, db, images, tmp, seed, progress, input_model, min_num_inliers)  # the mend's
+
+    monkeypatch.setattr(mapping, "_extend", bent_then_real)
+    with caplog.at_level("WARNING", logger="sara.map_retries"):
+        mapping.run(MapConfig(num_threads=1, mend_seam=mend_seam), db_path, tmp_path, tmp_path / "out", seed=0,
+                    progress=False, input_model=start)
+    info = records.done_info(tmp_path / "out", "map")
+    model = pycolmap.Reconstruction(str(tmp_path / "out" / "sparse" / "0"))
+    assert info["continued"] and info["num_registered"] == NUM_VIEWS and info["continued_pairs_checked"] > 0
+    if mend_seam:
+        assert len(calls) == 2 and info["continued_mended"] and info["continued_pairs_contradicted"] == 0
+        assert agreement(model, db_path).contradicted == []
+    else:
+        assert len(calls) == 1 and "continued_mended" not in info
+        assert info["continued_pairs_contradicted"] == len(agreement(model, db_path).contradicted) > 0
+        assert "map.mend_seam is off" in caplog.text
+
+
+def test_a_rounds_continuation_its_pairs_agree_with_is_kept_as_it_is(sequence, tmp_path):
+    rec, db_path = sequence
+    start = tmp_path / "start"
+    start.mkdir()
+    rec.write(str(start))
+    mapping.run(MapConfig(num_threads=1), db_path, tmp_path, tmp_path / "out", seed=0, progress=False,
+                input_model=start)
+    info = records.done_info(tmp_path / "out", "map")
+    assert info["continued"] and info["num_registered"] == NUM_VIEWS and "continued_mended" not in info
+    assert info["continued_pairs_contradicted"] == 0 and info["continued_pairs_checked"] == NUM_VIEWS * 2 - 3

@@ -200,6 +200,30 @@ def mended(tries: Attempts, first: colmap.MappedModels, check: colmap.Agreement,
     return (recs, again, again) if better(recs, again, first, check) else (first, check, again)
 
 
+def continued(tries: Attempts, recs: colmap.MappedModels) -> tuple[colmap.MappedModels, dict[str, int | bool]]:
+    """A continued model (a round's mapping) checked against its verified pairs, the round's new ones
+    included, and mended at its seam where they contradict it (`map.mend_seam`); never mapped again from
+    scratch (a round that could not register its views leaves them to the next). Returns the model
+    kept and what the map stage's record says of it.
+
+    A continuation registers views next to a model that agreed with its pairs; a new pair that closes
+    a loop across a stretch placed wrong shows the bend as it does in a first model, and a round that
+    glues a view at the wrong place bends its neighbourhood."""
+    check = tries.agreement(recs)
+    info: dict[str, int | bool] = {"continued_pairs_checked": check.checked,
+                                   "continued_pairs_contradicted": len(check.contradicted)}
+    if not contradicted(check):
+        return recs, info
+    if not tries.conf.mend_seam:
+        logger.warning("map: %d of the %d verified pairs between the views of the continued model contradict it "
+                       "(map.mend_seam is off: kept as it is)", len(check.contradicted), check.checked)
+        return recs, info
+    kept, kept_check, _ = mended(tries, recs, check)
+    if kept is not recs:
+        info.update(continued_mended=True, continued_pairs_contradicted=len(kept_check.contradicted))
+    return kept, info
+
+
 def contradicted(check: colmap.Agreement) -> bool:
     return check.share > CONTRADICTED_SHARE or len(check.contradicted) >= CONTRADICTED_PAIRS
 

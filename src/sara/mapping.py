@@ -68,11 +68,11 @@ def run(conf: MapConfig, db_path: Path, images_root: Path, out_dir: Path, *, see
     tmp = out_dir / ".sara" / PARTIAL
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
+    checked: dict[str, Any] = {}  # a continued model against its pairs
     try:
         if extend:
-            recs, num_images, elapsed = _extend(conf, db_path, images_root, tmp, seed, progress, input_model,
-                                                min_num_inliers)
-            recs.mapper = "incremental"
+            recs, num_images, elapsed, checked = _continued(conf, db_path, images_root, tmp, seed, progress,
+                                                            input_model, min_num_inliers)
         else:
             recs, num_images, elapsed = _map(conf, db_path, images_root, tmp, seed, progress,
                                              min_num_inliers=min_num_inliers, checkpoint=checkpoint)
@@ -93,7 +93,7 @@ def run(conf: MapConfig, db_path: Path, images_root: Path, out_dir: Path, *, see
     info = {"time_s": elapsed + earlier_s, "num_components": len(sizes), "component_sizes": sizes,
             "num_registered": sizes[0], "num_images": num_images, "forward_start": recs.forward_start,
             "continued": extend, "mapper": recs.mapper or conf.mapper, "distortion_held": held or recs.distortion_held}
-    info.update(_first_model_check(recs, previous if info["continued"] else None))
+    info.update(_first_model_check(recs, previous if info["continued"] else None), **checked)
     records.mark_done(out_dir, STAGE, key, info, outputs={"sparse": model_digest(sparse)})
     if checkpoint is not None:
         checkpoint.remove()
@@ -195,6 +195,18 @@ def _attempts(conf: MapConfig, db_path: Path, images_root: Path, tmp: Path, seed
         return _extend(conf, db_path, images_root, folder, seed, progress, model, min_num_inliers)[0]
 
     return map_retries.Attempts(conf, db_path, tmp, seed, min_num_inliers, checkpoint, incremental, extend)
+
+
+def _continued(conf: MapConfig, db_path: Path, images_root: Path, tmp: Path, seed: int, progress: bool,
+               input_model: Path, min_num_inliers: int) -> tuple[colmap.MappedModels, int, float, dict[str, Any]]:
+    """`input_model` continued (`_extend`), then checked against its pairs and mended at its seam where
+    they contradict it (`map_retries.continued`); with what the record says of that check."""
+    tic = time.perf_counter()
+    recs, num_images, _ = _extend(conf, db_path, images_root, tmp, seed, progress, input_model, min_num_inliers)
+    recs, checked = map_retries.continued(_attempts(conf, db_path, images_root, tmp, seed, progress, num_images,
+                                                    min_num_inliers, None), recs)
+    recs.mapper = "incremental"
+    return recs, num_images, time.perf_counter() - tic, checked
 
 
 def _extend(conf: MapConfig, db_path: Path, images_root: Path, tmp: Path, seed: int, progress: bool,

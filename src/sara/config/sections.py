@@ -201,7 +201,8 @@ class MapConfig:
         from them, and continue the rest, which registers them again; kept, and no remap follows, when
         its pairs then agree with it and it holds as many views less the seam's. Tried only where the
         cut keeps at least half the model (a seam in a large model, not a small scene bent as a whole):
-        at 10,000 images it mended a first model in minutes where a remap takes hours.""")
+        at 10,000 images it mended a first model in minutes where a remap takes hours. A round's
+        continued model that its pairs contradict is mended the same way (never mapped again).""")
     ba_global_growth: float = option(0.0, growth(), """Incremental mapper: adjust the whole model each time
         its registered views or points grew by this factor (COLMAP's ba_global_frames_ratio and
         ba_global_points_ratio, 1.1). 0: by size, COLMAP's 1.1 for scenes of fewer than 500 images
