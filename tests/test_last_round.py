@@ -36,6 +36,9 @@ def test_the_round_after_the_repairs_is_asked_for_as_the_last(tmp_path: Path, sy
     assert asked == [False, True]
     assert [h["role"] for h in rounds["history"]] == ["repair", "pose-guided"]
     assert rounds["rounds"] == len(asked) and "stopped" not in rounds
+    # each round's continued model was checked against its pairs; none contradicts a sound scene
+    assert [h["continued_pairs_contradicted"] for h in rounds["history"]] == [0, 0]
+    assert not any(h.get("continued_mended") for h in rounds["history"])
 
     asked.clear()  # the same run again: every round is done, none is asked for
     run(make_config("sift-offline", settings), images, out, progress=False)

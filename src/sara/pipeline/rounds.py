@@ -272,10 +272,13 @@ def _one_round(run: RoundsRun, info: dict[str, Any], *, last: bool = False) -> b
     after = _model_state(out_dir)
     gained = after[0] > state[0] or after[1] < state[1]
     round_s = time.perf_counter() - tic
+    mapped = records.done_info(out_dir, mapping.STAGE) if refined is None else {}
     info.setdefault("history", []).append({
         "role": added.role, "num_pairs": len(added.pairs), "pair_limit": limit,
         "match_time_s": matched.get("time_s", 0.0), "map_time_s": map_s, "time_s": round_s,
-        "registered": [state[0], after[0]], "num_models": [state[1], after[1]], "gain": gained})
+        "registered": [state[0], after[0]], "num_models": [state[1], after[1]], "gain": gained,
+        # the round's continued model against its pairs (`map_retries.continued`)
+        **{k: mapped[k] for k in ("continued_pairs_contradicted", "continued_mended") if k in mapped}})
     if not gained:
         info["unproductive_roles"] = sorted(set(info.get("unproductive_roles", [])) | {added.role})
     info.update(time_s=info["time_s"] + round_s, map_time_s=info["map_time_s"] + map_s,
