@@ -184,6 +184,12 @@ def test_the_report_says_how_a_contradicted_first_model_was_set_right(sara_run: 
     stage.update(remaps=0, mended=True, first_model_pairs_contradicted=0, first_model_pairs_checked=26170)
     assert ">first model</th><td>contradicted by its verified pairs: mended at the seam" \
         in sections.reconstruction(data)
+    assert "models of the rounds" not in sections.reconstruction(data)
+    data.run["stages"]["rounds"] = {"history": [{"role": "repair", "continued_pairs_contradicted": 0},
+                                                {"role": "fill", "continued_pairs_contradicted": 3,
+                                                 "continued_mended": True}]}
+    assert ">models of the rounds</th><td>contradicted by their verified pairs after the fill round(s): mended" \
+        in sections.reconstruction(data)
 
 
 def test_no_run_is_a_clear_error(tmp_path: Path):

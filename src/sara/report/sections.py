@@ -221,6 +221,11 @@ def reconstruction(data: RunData) -> str:
     first = _first_model(data.stages.get("map", {}))
     if first:
         rows.append(("first model", first))
+    history = (data.stages.get("rounds") or {}).get("history", [])
+    mended = [h.get("role", "?") for h in history if h.get("continued_mended")]
+    if mended:
+        rows.append(("models of the rounds", f"contradicted by their verified pairs after the {esc(', '.join(mended))} "
+                     "round(s): mended at the seam (map.mend_seam)"))
     if data.stages.get("map", {}).get("distortion_held"):
         rows.append(("lens distortion", "held while mapping: with it refined, the first model held under half the "
                      "views (map.refine_distortion)"))
