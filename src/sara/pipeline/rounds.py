@@ -273,6 +273,8 @@ def _one_round(run: RoundsRun, info: dict[str, Any], *, last: bool = False) -> b
     gained = after[0] > state[0] or after[1] < state[1]
     round_s = time.perf_counter() - tic
     mapped = records.done_info(out_dir, mapping.STAGE) if refined is None else {}
+    if "kept_after_round" in mapped:  # the round's model was dropped: the record is the earlier model's
+        mapped = {}
     info.setdefault("history", []).append({
         "role": added.role, "num_pairs": len(added.pairs), "pair_limit": limit,
         "match_time_s": matched.get("time_s", 0.0), "map_time_s": map_s, "time_s": round_s,
