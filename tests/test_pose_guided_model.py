@@ -3,6 +3,7 @@ re-triangulating with fixed poses and bundle-adjusting (`sara.colmap.refine`, `s
 
 from __future__ import annotations
 
+import logging
 from itertools import combinations
 from pathlib import Path
 
@@ -222,6 +223,29 @@ def test_extend_tracks_finds_the_observations_a_model_lost(model: Path, tmp_path
             column = rng.normal(size=grp.shape[0])
             grp[:, idx] = column / np.linalg.norm(column)
     assert extend_tracks(rec, features, TrackExtension(max_view_angle_deg=180.0)) == 0
+
+
+def test_a_model_too_large_for_float32_descriptors_is_extended_with_float16_ones(model: Path, tmp_path: Path,
+                                                                                caplog):
+    """Above `max_values` descriptor values the tracks' descriptors are held as float16 (half the
+    memory) and the same observations come back; above twice as many the model is left as it is."""
+    features = _features_of(pycolmap.Reconstruction(str(model / "sparse" / "0")), tmp_path / "f.h5", noise=0.9)
+
+    def extended(max_values: int) -> set:
+        rec = pycolmap.Reconstruction(str(model / "sparse" / "0"))
+        _remove_two_per_track(rec, seed=2)
+        assert rec.compute_num_observations() * 64 == 76_800
+        extend_tracks(rec, features, TrackExtension(max_view_angle_deg=180.0, max_values=max_values))
+        return {(e.image_id, e.point2D_idx, pid) for pid in rec.point3D_ids() for e in rec.points3D[pid].track.elements}
+
+    before = extended(0)  # above twice the limit: nothing added
+    assert len(before) == 1200
+    with caplog.at_level(logging.INFO, logger="sara.colmap.tracks"):
+        whole = extended(76_800)
+        assert "float16" not in caplog.text
+        half = extended(40_000)
+        assert "held as float16" in caplog.text
+    assert len(whole) >= 1200 + 0.95 * 400 and half == whole
 
 
 def _remove_two_per_track(rec: pycolmap.Reconstruction, seed: int) -> set:

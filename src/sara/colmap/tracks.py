@@ -54,8 +54,9 @@ class TrackExtension:
     max_view_angle_deg: float = 45.0
     #: the scale test's quantile; 0: not tested (the scores are not scales)
     scale_quantile: float = 0.0
-    #: larger models are left as they are: observation descriptor values held in memory (float32,
-    #: one array: 2 GiB)
+    #: observation descriptor values held in memory as float32 (one array: 2 GiB); up to twice as
+    #: many as float16 (the same 2 GiB: the 10,000-image synthetic street's final model needs about
+    #: 4.3 million observations x 128); larger models are left as they are
     max_values: int = 2**29
     #: views x points projected; above it each view is compared with the points of the views it
     #: shares points with, and the extension stops when those add up to this many
@@ -117,11 +118,14 @@ def extend_tracks(rec: pycolmap.Reconstruction, features_path: Path,
     obs = _observations(rec, views, point_ids)
     with FeatureCache(features_path, capacity=1) as cache:
         dim = cache.get(rec.images[views[0]].name).descriptors.shape[1]
-        if len(obs.point) * dim > ext.max_values:
+        if len(obs.point) * dim > 2 * ext.max_values:
             logger.info("track extension: %d views, %d points, %d observations: too large, skipped", len(views),
                         len(point_ids), len(obs.point))
             return 0
-        usable, tracks = _tracks(rec, views, obs, cache, dim, ext)
+        half = len(obs.point) * dim > ext.max_values
+        if half:
+            logger.info("track extension: %d observations: their descriptors held as float16", len(obs.point))
+        usable, tracks = _tracks(rec, views, obs, cache, dim, ext, np.float16 if half else np.float32)
         size, size_tol = None, np.inf
         if ext.scale_quantile > 0:
             size, size_tol = track_sizes(tracks.size, tracks.start, tracks.count, ext.scale_quantile)
@@ -159,10 +163,11 @@ def _observations(rec: pycolmap.Reconstruction, views: list[int], point_ids: np.
 
 
 def _tracks(rec: pycolmap.Reconstruction, views: list[int], obs: _Observations, cache: FeatureCache, dim: int,
-            ext: TrackExtension) -> tuple[np.ndarray, _Tracks]:
-    """(V,) whether each view's features fit the model, and the tracks' descriptors and sizes."""
+            ext: TrackExtension, dtype: type = np.float32) -> tuple[np.ndarray, _Tracks]:
+    """(V,) whether each view's features fit the model, and the tracks' descriptors (held as `dtype`;
+    compared as float32) and sizes."""
     # the descriptors in point order, written once (no copy of a large array)
-    o_desc = np.zeros((len(obs.point), dim), np.float32)
+    o_desc = np.zeros((len(obs.point), dim), dtype)
     o_size = np.zeros(len(obs.point), np.float64)  # log(scale * depth / focal)
     usable = np.zeros(len(views), bool)
     for v, iid in enumerate(views):
@@ -271,7 +276,7 @@ def track_distance_threshold(o_desc: np.ndarray, start: np.ndarray, count: np.nd
     tracks = tracks[np.linspace(0, len(tracks) - 1, min(len(tracks), TRACK_DISTANCE_SAMPLE)).astype(np.int64)]
     nearest = []
     for k in tracks:
-        desc = o_desc[start[k]:start[k] + count[k]]
+        desc = np.asarray(o_desc[start[k]:start[k] + count[k]], dtype=np.float32)
         sim = desc @ desc.T
         np.fill_diagonal(sim, -np.inf)
         nearest.append(sim.max(axis=1))
@@ -371,7 +376,7 @@ def _descriptor_distances(cand_rows: np.ndarray, dist: np.ndarray, nn: np.ndarra
         lookup = np.full(num_candidates, -1)
         lookup[rows] = np.arange(len(rows))
         sim = np.full(len(rows), -1.0)
-        np.maximum.at(sim, lookup[rep[sel]],
-                      np.einsum("nd,nd->n", o_desc[obs[sel]], desc[kp[lookup[rep[sel]]]]))
+        np.maximum.at(sim, lookup[rep[sel]], np.einsum(
+            "nd,nd->n", o_desc[obs[sel]].astype(np.float32, copy=False), desc[kp[lookup[rep[sel]]]]))
         best_d[np.nonzero(has)[0], c] = np.sqrt(np.maximum(0.0, 2.0 - 2.0 * sim))
     return best_d
