@@ -22,7 +22,7 @@ from pathlib import Path
 from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from scale_e2e import METHODS, stage_times  # noqa: E402  (a sibling lab script)
+from scale_e2e import METHODS, save_log_log, stage_times  # noqa: E402  (a sibling lab script)
 
 #: (session, N, method, set) of the rows that ran this release's code path for that method. The
 #: baselines' pairs have not changed since the sessions named; their mapping is the map stage of
@@ -127,14 +127,9 @@ def plot(groups: dict[tuple[int, str], list[dict[str, Any]]], path: Path) -> Non
                 ns, means, lows, highs = zip(*pts)
                 err = [[m - lo for m, lo in zip(means, lows)], [hi - m for m, hi in zip(means, highs)]]
                 ax.errorbar(ns, means, yerr=err, marker="o", capsize=3, label=LABELS.get(method, method))
-        title = {"pairs": "selection", "match": "matching", "map": "mapping, with SARA's rounds",
-                 "total": "after extraction"}[panel] + " (wall s)"
-        ax.set(xscale="log", yscale="log", xlabel="images N", title=title)
-        ax.grid(True, which="both", alpha=0.3)
-    axes[0].set_ylabel("seconds (mean over seeds; bars: range)")
-    axes[-1].legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
+        ax.set_title({"pairs": "selection", "match": "matching", "map": "mapping, with SARA's rounds",
+                      "total": "after extraction"}[panel] + " (wall s)")
+    save_log_log(fig, axes, path, "seconds (mean over seeds; bars: range)")
 
 
 def main() -> None:

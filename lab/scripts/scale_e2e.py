@@ -439,10 +439,16 @@ def plot(rows: list[dict[str, Any]], path: Path) -> None:
             pts = [(n, s) for n, s in pts if s]
             if pts:
                 ax.plot(*zip(*pts), marker="o", label=method)
-        title = f"{stage} (wall s)" + (", sara: with its rounds" if stage == "map" else "")
-        ax.set(xscale="log", yscale="log", xlabel="images N", title=title)
+        ax.set_title(f"{stage} (wall s)" + (", sara: with its rounds" if stage == "map" else ""))
+    save_log_log(fig, axes, path, "seconds")
+
+
+def save_log_log(fig, axes, path: Path, ylabel: str) -> None:
+    """Log-log axes against N with a grid, the y label on the first and the legend on the last; saved."""
+    for ax in axes:
+        ax.set(xscale="log", yscale="log", xlabel="images N")
         ax.grid(True, which="both", alpha=0.3)
-    axes[0].set_ylabel("seconds")
+    axes[0].set_ylabel(ylabel)
     axes[-1].legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
