@@ -118,11 +118,12 @@ def extend_tracks(rec: pycolmap.Reconstruction, features_path: Path,
     obs = _observations(rec, views, point_ids)
     with FeatureCache(features_path, capacity=1) as cache:
         dim = cache.get(rec.images[views[0]].name).descriptors.shape[1]
-        if len(obs.point) * dim > 2 * ext.max_values:
+        values = len(obs.point) * dim
+        if values > 2 * ext.max_values:
             logger.info("track extension: %d views, %d points, %d observations: too large, skipped", len(views),
                         len(point_ids), len(obs.point))
             return 0
-        half = len(obs.point) * dim > ext.max_values
+        half = values > ext.max_values
         if half:
             logger.info("track extension: %d observations: their descriptors held as float16", len(obs.point))
         usable, tracks = _tracks(rec, views, obs, cache, dim, ext, np.float16 if half else np.float32)
