@@ -13,6 +13,7 @@ import pycolmap
 import pytest
 
 from model_utils import synthetic_database
+from sara.colmap import tracks as tracks_module
 from sara.colmap.refine import read_geometry, triangulate_and_adjust
 from sara.colmap.tracks import TrackExtension, extend_tracks, track_distance_threshold, track_sizes
 from sara.config import make_config
@@ -389,6 +390,18 @@ def test_a_view_whose_features_do_not_fit_the_model_is_left_out_of_the_extension
     assert added == sum(1 for image_id, _, _ in removed if image_id != odd) > 0
     assert {r for r in removed if r[0] != odd} <= found
     assert not {r for r in removed if r[0] == odd} & found  # the odd view gets nothing back
+
+
+def test_the_tracks_without_a_view_keep_their_descriptors_in_place():
+    """Dropping a view's observations moves the other descriptors down inside the same array, a chunk
+    at a time, instead of copying gigabytes."""
+    rng = np.random.default_rng(3)
+    desc = rng.normal(size=(1000, 8)).astype(np.float16)
+    rows = np.flatnonzero(rng.random(1000) < 0.7)
+    expected = desc[rows].copy()
+    kept = tracks_module._keep_rows(desc, rows, chunk=37)
+    assert np.array_equal(kept, expected)
+    assert np.shares_memory(kept, desc)
 
 
 def test_the_scale_test_is_on_only_for_features_whose_scores_are_scales():

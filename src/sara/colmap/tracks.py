@@ -187,10 +187,20 @@ def _tracks(rec: pycolmap.Reconstruction, views: list[int], obs: _Observations, 
     o_point, o_view = obs.point[obs.order], obs.view[obs.order]
     if not usable.all():  # observations whose descriptors are unknown leave the tracks' lists
         known = usable[o_view]
-        o_point, o_view, o_desc, o_size = o_point[known], o_view[known], o_desc[known], o_size[known]
+        o_point, o_view, o_size = o_point[known], o_view[known], o_size[known]
+        o_desc = _keep_rows(o_desc, np.flatnonzero(known))
     count = np.bincount(o_point, minlength=len(obs.xyz))
     start = np.concatenate([[0], np.cumsum(count)[:-1]])
     return usable, _Tracks(point=o_point, view=o_view, desc=o_desc, size=o_size, start=start, count=count)
+
+
+def _keep_rows(a: np.ndarray, rows: np.ndarray, chunk: int = 1 << 16) -> np.ndarray:
+    """`a[rows]` for increasing `rows`, written over `a` itself a chunk at a time (the largest models'
+    descriptors fill gigabytes: a copy would double them for a moment)."""
+    for s in range(0, len(rows), chunk):
+        part = rows[s:s + chunk]
+        a[s:s + len(part)] = a[part]  # each row moves down or stays: nothing still needed is overwritten
+    return a[:len(rows)]
 
 
 def _extend_views(rec: pycolmap.Reconstruction, views: list[int], point_ids: np.ndarray, obs: _Observations,
