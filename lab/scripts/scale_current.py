@@ -65,12 +65,21 @@ def picked(rows: list[dict[str, Any]]) -> dict[tuple[int, str], list[dict[str, A
     return groups
 
 
+def final_eval(row: dict[str, Any]) -> dict[str, Any]:
+    """The row's scores, or those of its model extended afterwards (`extended_after`)."""
+    return (row.get("extended_after") or row)["eval"]
+
+
 def times(n: int, method: str, row: dict[str, Any]) -> dict[str, float | None]:
-    """Wall seconds by stage (rounds: SARA's before and after the first mapping), total and CPU."""
+    """Wall seconds by stage (rounds: SARA's before and after the first mapping, and a track extension
+    run afterwards by `extend_model.py`, `extended_after`), total and CPU."""
     if (n, method) in ASSEMBLED:
         t = dict(ASSEMBLED[(n, method)])
     else:
         t = dict(stage_times(row)) | {"cpu": row.get("cpu_s")}
+        if after := row.get("extended_after"):
+            t["rounds"] = (t["rounds"] or 0.0) + after["wall_s"]
+            t["cpu"] = None if t["cpu"] is None else t["cpu"] + after["cpu_s"]
     t["total"] = sum(t[k] or 0.0 for k in ("pairs", "match", "map", "rounds"))
     return t
 
@@ -93,9 +102,9 @@ def table(groups: dict[tuple[int, str], list[dict[str, Any]]]) -> str:
              "|---:|---|---:|---:|---|---|---|---:|---:|---:|---:|---:|---:|---:|"]
     for (n, method), rows in sorted(groups.items(), key=lambda g: (g[0][0], list(METHODS).index(g[0][1]))):
         ts = [times(n, method, r) for r in rows]
-        auc = [r["eval"]["auc"] for r in rows]
+        auc = [final_eval(r)["auc"] for r in rows]
         pairs = sorted({r["num_pairs_matched"] for r in rows})
-        reg = sorted({f"{r['eval']['num_registered']:,} / {r['eval']['num_components']}" for r in rows})
+        reg = sorted({f"{final_eval(r)['num_registered']:,} / {final_eval(r)['num_components']}" for r in rows})
         peak = max(max(r["peak_rss_gib"], r.get("peak_tree_pss_gib", 0.0)) for r in rows)
         pair_text = f"{pairs[0]:,}" if len(pairs) == 1 else f"{pairs[0]:,}-{pairs[-1]:,}"
         lines.append(
