@@ -19,6 +19,9 @@ a run past --timeout-min (default 40 minutes per 1,000 images) is killed and rec
 with the stages it had finished.
 With --resume (and a run folder kept by --keep-runs, in a WORK without that row) a stopped run is
 continued in place: the pipeline skips the stages it finished, and the row adds their earlier times.
+To run one bench beside another at a lower priority, `nice` is not enough where the kernel shares the
+CPU by session (autogroup: each child starts a session of its own); write 19 to
+/proc/CHILD_PID/autogroup as well.
 
     python lab/scripts/scale_e2e.py --sizes 200,1000 --out WORK
     python lab/scripts/scale_e2e.py --sizes 200 --methods sara,exhaustive --out WORK
