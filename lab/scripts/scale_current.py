@@ -5,9 +5,8 @@ most of them from code since changed. This picks the rows that ran the code as i
 method (`CURRENT`, with the reason in a comment), groups them by size and method (several seeds:
 mean and range), and writes a markdown table and a log-log plot of wall time per stage against N.
 
-SARA's 10,000-image run was made of parts over four sessions (each resumed from the last one's
-checkpoint); its row holds only the last part's times, so its stage times are the parts' sums as
-lab/notes/SCALE.md records them (`ASSEMBLED`).
+A run made of parts over several sessions holds only the last part's times in its row; its stage
+times can be given as the parts' sums (`ASSEMBLED`; none at present).
 
     python lab/scripts/scale_current.py lab/notes/scale_e2e_results.jsonl OUT   # OUT/scale_current.{md,png}
 """
@@ -37,16 +36,14 @@ CURRENT: list[tuple[int, int, str, tuple[str, ...]]] = [
     (29, 3000, "retrieval", ()),  # one run, the step-by-step mapping of this release
     (33, 3000, "vocab_tree", ()),
     # 10,000 images: one run each on the world made in the thirty-sixth session
-    (41, 10000, "sara", ()),
+    # SARA under seed 1 in one go, its final extension run afterwards (forty-fourth session)
+    (44, 10000, "sara", ("seed=1", "rounds.extend_tracks=false")),
     (38, 10000, "sequential", ()),
 ]
 
-#: SARA at 10,000 images, wall seconds by part (lab/notes/SCALE.md, "SARA at 10,000 images to the
-#: end, with the mend"): selection about 750 s, first matching 777 s, first mapping 6,420 s plus the
-#: mend 332 s, the rounds 1,131 s; its CPU seconds were not summed over the parts
-ASSEMBLED: dict[tuple[int, str], dict[str, float | None]] = {
-    (10000, "sara"): {"pairs": 750.0, "match": 777.0, "map": 6752.0, "rounds": 1131.0, "cpu": None},
-}
+#: (N, method) -> wall seconds by stage of a run made of parts (the forty-first session's SARA at
+#: 10,000 images was, until the forty-fourth session's run in one go replaced it)
+ASSEMBLED: dict[tuple[int, str], dict[str, float | None]] = {}
 
 PANELS = ("pairs", "match", "map", "total")
 LABELS = {"sara": "SARA", "sequential": "sequential + loop detection", "retrieval": "retrieval top-k",
