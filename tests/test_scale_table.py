@@ -11,9 +11,9 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 COMMAND = "python lab/scripts/scale_current.py lab/notes/scale_e2e_results.jsonl OUT"
-#: the script's method names as the docs spell them
-LABELS = {"sara": "SARA", "sequential": "sequential + loop detection", "retrieval": "retrieval top-k",
-          "vocab_tree": "vocabulary tree"}
+sys.path.insert(0, str(ROOT / "lab" / "scripts"))
+from scale_current import LABELS  # noqa: E402  (the script's method names as the docs spell them)
+
 #: cells compared as they are (the docs may only add bold); the registered / models cell is written
 #: differently (a range, not a list)
 COMPARED = ("runs", "pairs", "AUC@1 mean (range)", "AUC@5 mean (range)", "match s", "map s", "rounds s", "CPU s")

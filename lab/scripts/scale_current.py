@@ -5,9 +5,6 @@ most of them from code since changed. This picks the rows that ran the code as i
 method (`CURRENT`, with the reason in a comment), groups them by size and method (several seeds:
 mean and range), and writes a markdown table and a log-log plot of wall time per stage against N.
 
-A run made of parts over several sessions holds only the last part's times in its row; its stage
-times can be given as the parts' sums (`ASSEMBLED`; none at present).
-
     python lab/scripts/scale_current.py lab/notes/scale_e2e_results.jsonl OUT   # OUT/scale_current.{md,png}
 """
 
@@ -41,10 +38,6 @@ CURRENT: list[tuple[int, int, str, tuple[str, ...]]] = [
     (38, 10000, "sequential", ()),
 ]
 
-#: (N, method) -> wall seconds by stage of a run made of parts (the forty-first session's SARA at
-#: 10,000 images was, until the forty-fourth session's run in one go replaced it)
-ASSEMBLED: dict[tuple[int, str], dict[str, float | None]] = {}
-
 PANELS = ("pairs", "match", "map", "total")
 LABELS = {"sara": "SARA", "sequential": "sequential + loop detection", "retrieval": "retrieval top-k",
           "vocab_tree": "vocabulary tree"}
@@ -70,13 +63,10 @@ def final_eval(row: dict[str, Any]) -> dict[str, Any]:
 def times(n: int, method: str, row: dict[str, Any]) -> dict[str, float | None]:
     """Wall seconds by stage (rounds: SARA's before and after the first mapping, and a track extension
     run afterwards by `extend_model.py`, `extended_after`), total and CPU."""
-    if (n, method) in ASSEMBLED:
-        t = dict(ASSEMBLED[(n, method)])
-    else:
-        t = dict(stage_times(row)) | {"cpu": row.get("cpu_s")}
-        if after := row.get("extended_after"):
-            t["rounds"] = (t["rounds"] or 0.0) + after["wall_s"]
-            t["cpu"] = None if t["cpu"] is None else t["cpu"] + after["cpu_s"]
+    t = dict(stage_times(row)) | {"cpu": row.get("cpu_s")}
+    if after := row.get("extended_after"):
+        t["rounds"] = (t["rounds"] or 0.0) + after["wall_s"]
+        t["cpu"] = None if t["cpu"] is None else t["cpu"] + after["cpu_s"]
     t["total"] = sum(t[k] or 0.0 for k in ("pairs", "match", "map", "rounds"))
     return t
 
