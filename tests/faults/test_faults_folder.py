@@ -1,7 +1,8 @@
 """Class 3b of the fault suite: what else is in the image folder (issue 30). sara's own output
 folder inside the image folder is never read as input; every file that is not used is said so
 (one warning line counting them by reason, each in run.json's `skipped_images`); HEIC photos are
-read where pillow-heif is installed, and otherwise named with the extra to install."""
+read where pillow-heif is installed, and otherwise named with the extra to install; WebP photos are
+read through Pillow and exported under names COLMAP can write."""
 
 from __future__ import annotations
 
@@ -157,3 +158,33 @@ def test_heic_photos_are_used_with_pillow_heif(images, tmp_path, run_cli):
     assert_ok(result)
     assert registered(tmp_path / "out") == sorted(names)
     assert not json.loads((tmp_path / "out" / "run.json").read_text())["skipped_images"]
+
+
+def test_webp_photos_are_used_and_exported(images, tmp_path, run_cli):
+    """A photo collection downloaded from the web holds WebP files, which COLMAP cannot read: sara
+    decodes them with Pillow, reconstructs from JPEG copies, and the 3DGS export (COLMAP's
+    undistorter cannot write WebP) names those images `<name>.jpg`."""
+    from PIL import features
+
+    if not features.check("webp"):
+        pytest.skip("this Pillow was built without WebP")
+    folder = tmp_path / "downloads"
+    folder.mkdir()
+    names = []
+    for k, path in enumerate(sorted(images.iterdir())):
+        name = f"{path.stem}.webp" if k % 2 == 0 else path.name
+        Image.open(path).convert("RGB").save(folder / name, quality=95) if k % 2 == 0 \
+            else shutil.copyfile(path, folder / name)
+        names.append(name)
+    out = tmp_path / "out"
+    assert_ok(run_cli("run", folder, out, "-q"))
+    assert registered(out) == sorted(names)
+    assert not json.loads((out / "run.json").read_text())["skipped_images"]
+    assert_ok(run_cli("export", out, tmp_path / "splat", "--format", "3dgs", "-q"))
+    exported = sorted(p.name for p in (tmp_path / "splat" / "images").iterdir())
+    assert exported == sorted(f"{n}.jpg" if n.endswith(".webp") else n for n in names)
+    from sara.colmap.model import read_model
+
+    assert sorted(read_model(tmp_path / "splat" / "sparse" / "0").names) == exported
+    with Image.open(tmp_path / "splat" / "images" / f"{names[0]}.jpg") as im:
+        assert im.format == "JPEG"

@@ -12,6 +12,7 @@ from tqdm import tqdm
 
 from ..colmap import model
 from ..io import read_json
+from ..io.images import read_from_copy
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -43,13 +44,15 @@ def find_model(out_dir: Path, model_index: int = 0) -> Path:
 
 
 def recorded_images_root(out_dir: Path) -> Path:
-    """The image folder a run's model was made from (the upright copies when the run made them)."""
+    """The image folder a run's model was made from: the copies when the run made them (of EXIF-rotated
+    images under `exif_orientation=apply`, or of images COLMAP cannot read: HEIC, WebP, AVIF)."""
     run_json = Path(out_dir) / "run.json"
     if not run_json.exists():
         raise FileNotFoundError(f"{out_dir} has no run.json to name the image folder; pass the images folder")
     run = read_json(run_json)
     upright = Path(out_dir) / "images_upright"
-    if run.get("config", {}).get("images", {}).get("exif_orientation") == "apply" and upright.is_dir():
+    if upright.is_dir() and (run.get("config", {}).get("images", {}).get("exif_orientation") == "apply"
+                             or any(read_from_copy(p.name) for p in upright.rglob("*") if not p.is_symlink())):
         return upright
     if not run.get("images_root"):
         raise FileNotFoundError(f"{run_json} names no image folder; pass the images folder")
@@ -77,10 +80,13 @@ def flat_names(names: list[str]) -> dict[str, str]:
 
 
 def undistort_flat(model_dir: Path, images_root: Path, dest: Path, max_image_size: int, progress: bool) -> Path:
-    """Undistorted images as `dest/images/<flat name>` and their PINHOLE model in `dest/sparse/0`."""
+    """Undistorted images as `dest/images/<flat name>` and their PINHOLE model in `dest/sparse/0`.
+    COLMAP writes each image in the format its name ends with: an image of a format it cannot
+    write (HEIC, WebP, AVIF: the run read a JPEG copy of it) is written as `<name>.jpg`."""
     names = model.read_model(model_dir).names
-    rename = flat_names(names)
     with tempfile.TemporaryDirectory(prefix=".sara-export-", dir=dest) as tmp:
+        model_dir, images_root, names = _jpeg_names(model_dir, images_root, Path(tmp), names)
+        rename = flat_names(names)
         images_dir, sparse_dir = model.undistort_images(model_dir, images_root, Path(tmp),
                                                         max_image_size=max_image_size)
         for folder in (dest / "images", dest / "sparse"):
@@ -91,6 +97,20 @@ def undistort_flat(model_dir: Path, images_root: Path, dest: Path, max_image_siz
             shutil.move(str(images_dir / name), str(dest / "images" / flat))
         model.write_model(sparse_dir, dest / "sparse" / "0", rename=rename)
     return dest / "sparse" / "0"
+
+
+def _jpeg_names(model_dir: Path, images_root: Path, tmp: Path, names: list[str]) -> tuple[Path, Path, list[str]]:
+    """(model, image folder, names) in which each image COLMAP cannot write is named `<name>.jpg`:
+    the model renamed into `tmp/renamed`, the images linked into `tmp/linked` under the new names.
+    Unchanged where no image needs it."""
+    jpeg = {name: f"{name}.jpg" if read_from_copy(name) else name for name in names}
+    if all(new == name for name, new in jpeg.items()):
+        return model_dir, images_root, names
+    model.write_model(model_dir, tmp / "renamed", rename=jpeg)
+    for name, new in jpeg.items():
+        (tmp / "linked" / new).parent.mkdir(parents=True, exist_ok=True)
+        (tmp / "linked" / new).symlink_to((Path(images_root) / name).resolve())
+    return tmp / "renamed", tmp / "linked", list(jpeg.values())
 
 
 def copy_images(src_root: Path, dst_root: Path, rename: dict[str, str], progress: bool) -> None:

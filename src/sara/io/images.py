@@ -35,7 +35,7 @@ class ImageSet:
     sizes: dict[str, tuple[int, int]]
     skipped: dict[str, str] = field(default_factory=dict)
     orientation: dict[str, int] = field(default_factory=dict)  # EXIF orientation, only where not 1
-    needs_copy: set[str] = field(default_factory=set)  # formats COLMAP cannot read (HEIC): used from a copy
+    needs_copy: set[str] = field(default_factory=set)  # formats COLMAP cannot read (HEIC, WebP): used from a copy
 
     def fingerprint_data(self) -> list[tuple[str, int, int]]:
         """Names, file sizes in bytes and modification times: what identified the set for the
@@ -133,6 +133,10 @@ def folder_mismatch(root: Path, cache_path: Path, *, rotated: frozenset[str] = f
 #: HEIC photos (phones) are read through pillow-heif, an optional extra
 HEIC_EXTENSIONS = (".heic", ".heif")
 HEIC_MISSING = "HEIC photo: install pillow-heif (pip install 'sara[heic]') to use it"
+#: web formats (downloaded photo collections) read through Pillow where it was built with them:
+#: extension -> Pillow's name of the feature. Like HEIC, COLMAP cannot read them, so the stages
+#: read JPEG copies (`upright_copy`)
+WEB_FORMATS = {".webp": "webp", ".avif": "avif"}
 #: image formats sara does not read, named so that the warning says what they are
 OTHER_IMAGE_FORMATS = (".gif", ".webp", ".avif", ".jxl", ".jp2", ".psd", ".svg", ".exr", ".hdr", ".dng", ".raw",
                        ".cr2", ".cr3", ".nef", ".arw", ".orf", ".rw2")
@@ -148,6 +152,23 @@ def heic_supported() -> bool:
         return False
     pillow_heif.register_heif_opener()
     return True
+
+
+def copied_extensions(files: list[str]) -> tuple[str, ...]:
+    """The extensions among `files` that sara decodes although COLMAP cannot (read from JPEG
+    copies): HEIC where pillow-heif is installed, WebP and AVIF where Pillow decodes them."""
+    from PIL import features
+
+    suffixes = {Path(name.lower()).suffix for name in files}
+    found = [ext for ext, feature in WEB_FORMATS.items() if ext in suffixes and features.check(feature)]
+    if suffixes & set(HEIC_EXTENSIONS) and heic_supported():
+        found += HEIC_EXTENSIONS
+    return tuple(found)
+
+
+def read_from_copy(name: str) -> bool:
+    """Whether COLMAP cannot read this image file, so that the stages read a JPEG copy of it."""
+    return name.lower().endswith(HEIC_EXTENSIONS + tuple(WEB_FORMATS))
 
 
 def _is_output_folder(folder: Path, out_dir: Path | None) -> bool:
@@ -176,12 +197,13 @@ def _all_files(root: Path, recursive: bool, out_dir: Path | None) -> list[str]:
     return names
 
 
-def not_used_reason(root: Path, name: str, *, heic: bool = False) -> str | None:
-    """Why a file of the folder is not an image sara reads (None for an image file to check)."""
+def not_used_reason(root: Path, name: str, *, copied: tuple[str, ...] = ()) -> str | None:
+    """Why a file of the folder is not an image sara reads (None for an image file to check);
+    `copied`: the extensions read from copies (`copied_extensions`)."""
     path, lower = Path(root) / name, name.lower()
     if path.is_symlink() and not path.exists():
         return "broken symbolic link (its target is missing)"
-    if lower.endswith(IMAGE_EXTENSIONS) or (heic and lower.endswith(HEIC_EXTENSIONS)):
+    if lower.endswith(IMAGE_EXTENSIONS + copied):
         return None
     stripped = lower.rstrip()
     if stripped != lower and stripped.endswith(IMAGE_EXTENSIONS + HEIC_EXTENSIONS):
@@ -225,10 +247,10 @@ def list_image_files(root: Path, *, recursive: bool = False, out_dir: Path | Non
     if not root.is_dir():
         raise NotADirectoryError(f"not a folder: {root} (give the folder that holds the images)")
     files = _all_files(root, recursive, out_dir)
-    heic = any(n.lower().endswith(HEIC_EXTENSIONS) for n in files) and heic_supported()
+    copied = copied_extensions(files)
     names = []
     for name in files:
-        reason = not_used_reason(root, name, heic=heic)
+        reason = not_used_reason(root, name, copied=copied)
         if reason is None:
             names.append(name)
         elif not_used is not None:
@@ -308,7 +330,7 @@ def scan_images(root: Path, *, recursive: bool = False, progress: bool = True,
         hint = "" if recursive else " (use --recursive to look into sub-folders)"
         found = f"; found only: {summarise_not_used(not_used)}" if not_used else ""
         raise ValueError(f"no images found in {root}; looked for {', '.join(IMAGE_EXTENSIONS)}{hint}{found}")
-    names, sizes, orientation, needs_copy = [], {}, {}, set()
+    names, sizes, orientation, copies = [], {}, {}, set()
     skipped = {display_name(n): r for n, r in sorted(not_used.items())}
     for name in tqdm(candidates, desc="check images", unit="img", disable=not progress):
         reason = HIDDEN_REASON if Path(name).name.startswith(".") else name_problem(name)
@@ -323,17 +345,17 @@ def scan_images(root: Path, *, recursive: bool = False, progress: bool = True,
         sizes[name] = size
         if orient != 1:
             orientation[name] = orient
-        if name.lower().endswith(HEIC_EXTENSIONS):
-            needs_copy.add(name)
+        if read_from_copy(name):
+            copies.add(name)
     if not names:
         raise ValueError(f"none of the {len(candidates)} image files in {root} could be used (see the warnings)")
     return ImageSet(root=root, names=names, sizes=sizes, skipped=skipped, orientation=orientation,
-                    needs_copy=needs_copy)
+                    needs_copy=copies)
 
 
 def upright_copy(images: ImageSet, folder: Path, *, rotate: bool = True, progress: bool = True) -> ImageSet:
     """An ImageSet in `folder`: with `rotate`, EXIF-rotated images stored upright; images COLMAP
-    cannot read (`needs_copy`, HEIC) stored as JPEG under their own names; the others linked.
+    cannot read (`needs_copy`: HEIC, WebP, AVIF) stored as JPEG under their own names; the others linked.
 
     COLMAP uses the stored pixels and ignores the EXIF orientation tag; tools that honour the tag
     would then see other pixels than the model was made from. This makes both agree.

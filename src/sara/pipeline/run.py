@@ -249,8 +249,8 @@ def _check_ground_truth(gt_dir: Path, images_root: Path, names: list[str] | None
 
 
 def _handle_orientation(mode: str, images: ImageSet, out_dir: Path, progress: bool) -> ImageSet:
-    """The images the stages read: with `apply`, EXIF-rotated ones from upright copies; HEIC
-    photos (which COLMAP cannot read) from JPEG copies, both in `out_dir/images_upright`."""
+    """The images the stages read: with `apply`, EXIF-rotated ones from upright copies; HEIC,
+    WebP and AVIF images (which COLMAP cannot read) from JPEG copies, both in `out_dir/images_upright`."""
     if mode not in ("ignore", "apply"):
         raise ValueError(f"images.exif_orientation must be ignore or apply, not {mode!r}")
     rotate = mode == "apply" and bool(images.orientation)
@@ -262,8 +262,8 @@ def _handle_orientation(mode: str, images: ImageSet, out_dir: Path, progress: bo
                        "Use -s images.exif_orientation=apply for upright copies", len(images.orientation),
                        next(iter(images.orientation)))
     if images.needs_copy:
-        logger.info("%d HEIC photos: reconstructing from JPEG copies in %s", len(images.needs_copy),
-                    out_dir / "images_upright")
+        logger.info("%d images in formats COLMAP cannot read (HEIC, WebP, AVIF): reconstructing from JPEG copies "
+                    "in %s", len(images.needs_copy), out_dir / "images_upright")
     if not rotate and not images.needs_copy:
         return images
     return upright_copy(images, out_dir / "images_upright", rotate=rotate, progress=progress)
