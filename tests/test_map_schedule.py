@@ -117,14 +117,14 @@ def test_a_model_mapped_before_the_setting_existed_is_not_mapped_again():
 
     conf = make_config("sift-offline", {}).map
     added = ("ba_global_growth", "ba_global_refinements", "ba_direct_max_images", "contradicted_remaps",
-             "checkpoint_minutes", "refine_distortion", "mend_seam")
+             "checkpoint_minutes", "refine_distortion", "mend_seam", "two_view_points")
     before = {k: v for k, v in conf.__dict__.items() if k not in added}
     assert mapping.state_key(conf, 0, "up") == fingerprint({"conf": before, "seed": 0, "upstream": "up"})
     # how often a long mapping keeps its models changes no model: never in the key
     assert mapping.state_key(dataclasses.replace(conf, checkpoint_minutes=0.0), 0, "up") == \
         mapping.state_key(conf, 0, "up")
     for setting in ({"ba_global_growth": 1.4}, {"ba_global_refinements": 1}, {"ba_direct_max_images": 3000},
-                    {"contradicted_remaps": 0}, {"mend_seam": False}):
+                    {"contradicted_remaps": 0}, {"mend_seam": False}, {"two_view_points": True}):
         by_hand = dataclasses.replace(conf, **setting)
         assert mapping.state_key(by_hand, 0, "up") != mapping.state_key(conf, 0, "up")
 

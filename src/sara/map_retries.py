@@ -1,5 +1,6 @@
 """The first incremental mapping set right before the rounds: mapped again with the lens distortion
-held, or from a forward pair, when its largest model could not grow; mended at its seam, or mapped
+held, or from a forward pair, when its largest model could not grow, or with the points seen in two
+views only when nothing was built (two photos); mended at its seam, or mapped
 again under other seeds, when its own verified pairs contradict it. Each keeps the better model
 (`better`). The map stage (`sara.mapping`) passes in its own ways of mapping (`Attempts`)."""
 
@@ -69,7 +70,9 @@ def set_right(tries: Attempts, first: colmap.MappedModels) -> colmap.MappedModel
     recs = distortion_held(tries, first)
     conf = tries.conf
     tries = replace(tries, conf=replace(conf, refine_distortion=conf.refine_distortion and not recs.distortion_held))
-    return agreeing(tries, forward_start(tries, recs))
+    recs = two_view_points(tries, forward_start(tries, recs))
+    tries = replace(tries, conf=replace(tries.conf, two_view_points=tries.conf.two_view_points or recs.two_view_points))
+    return agreeing(tries, recs)
 
 
 def distortion_held(tries: Attempts, first: colmap.MappedModels) -> colmap.MappedModels:
@@ -125,6 +128,29 @@ def forward_start(tries: Attempts, first: colmap.MappedModels) -> colmap.MappedM
     if again.largest <= first.largest:
         return first
     again.forward_start, again.distortion_held = True, first.distortion_held
+    return again
+
+
+def two_view_points(tries: Attempts, first: colmap.MappedModels) -> colmap.MappedModels:
+    """Map again with the points seen in two views only, from a forward pair allowed, when no model
+    was built so far (the forward retry included); keeps that mapping when it builds one.
+
+    COLMAP triangulates only points whose matches join three views or more (ignore_two_view_tracks),
+    so two photos never make a model however well they overlap (two views of fountain-P11: none,
+    4,696 inlier matches; with these points both views and 4,696 points). Where a third view joins
+    the points, nothing changes: this runs only where nothing else built a model."""
+    if first.largest > 0 or tries.conf.two_view_points:
+        return first
+    logger.info("map: no model could be built from the points seen in three views or more: mapping again with "
+                "those seen in two views only (map.two_view_points)")
+    folder = tries.tmp / "two-view"
+    folder.mkdir()
+    again = tries.incremental(replace(tries.conf, two_view_points=True), folder, tries.seed, forward_start=True,
+                              checkpoint=tries.derived(folder.name))
+    if again.largest == 0:
+        return first
+    logger.warning("map: with the points seen in two views only, the largest model holds %d views", again.largest)
+    again.two_view_points, again.forward_start, again.distortion_held = True, True, first.distortion_held
     return again
 
 

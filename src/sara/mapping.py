@@ -57,8 +57,10 @@ def run(conf: MapConfig, db_path: Path, images_root: Path, out_dir: Path, *, see
     previous = records.read_record(out_dir, STAGE)
     # the incremental mapper continues its own models, and those it built for a contradicted global one
     extend = input_model is not None and "incremental" in (conf.mapper, _mapped_by(previous))
-    held = extend and bool(((previous or {}).get("info") or {}).get("distortion_held"))
-    conf = replace(conf, refine_distortion=conf.refine_distortion and not held)  # as the model continued was mapped
+    earlier = ((previous or {}).get("info") or {}) if extend else {}
+    held = bool(earlier.get("distortion_held"))
+    conf = replace(conf, refine_distortion=conf.refine_distortion and not held,  # as the model continued was mapped
+                   two_view_points=conf.two_view_points or bool(earlier.get("two_view_points")))
     records.mark_started(out_dir, STAGE, key)
     checkpoint = Checkpoint(out_dir / ".sara" / CHECKPOINT, key, conf.checkpoint_minutes * 60) \
         if conf.checkpoint_minutes > 0 and not extend else None
@@ -92,6 +94,7 @@ def run(conf: MapConfig, db_path: Path, images_root: Path, out_dir: Path, *, see
     swap_in(tmp, sparse)
     info = {"time_s": elapsed + earlier_s, "num_components": len(sizes), "component_sizes": sizes,
             "num_registered": sizes[0], "num_images": num_images, "forward_start": recs.forward_start,
+            "two_view_points": conf.two_view_points or recs.two_view_points,
             "continued": extend, "mapper": recs.mapper or conf.mapper, "distortion_held": held or recs.distortion_held}
     info.update(_first_model_check(recs, previous if info["continued"] else None), **checked)
     records.mark_done(out_dir, STAGE, key, info, outputs={"sparse": model_digest(sparse)})
@@ -180,7 +183,7 @@ def _incremental(conf: MapConfig, db_path: Path, images_root: Path, tmp: Path, s
             ba_global_ratio=ba_global_growth(conf, num_images),
             ba_global_refinements=ba_global_refinements(conf, num_images),
             direct_solver_up_to=ba_direct_max_images(conf, num_images), first_image=first_image,
-            checkpoint=checkpoint, refine_extra_params=conf.refine_distortion)
+            checkpoint=checkpoint, refine_extra_params=conf.refine_distortion, two_view_points=conf.two_view_points)
 
 
 def _attempts(conf: MapConfig, db_path: Path, images_root: Path, tmp: Path, seed: int, progress: bool,
@@ -250,8 +253,8 @@ def no_model_reason(db_path: Path, conf: MapConfig, min_num_inliers: int) -> str
     if conf.mapper == "incremental":
         return (f"the mapper found no pair of views to start from among the {linked} (the best has {most_inliers} "
                 f"inlier matches): COLMAP's mapper also needs {need_angle:g} degrees of triangulation angle between "
-                "them (a start from views that moved forward was tried too), and these views are too close together, "
-                "turn on the spot, or see a flat scene")
+                "them (a start from views that moved forward, and points seen in two views only, were tried too), and "
+                "these views are too close together, turn on the spot, or see a flat scene")
     return f"the global mapper found no model among the {linked}"
 
 
@@ -281,7 +284,8 @@ def _model_intact(out_dir: Path, sparse: Path) -> bool:
 #: settings added after runs were made: left out of the key at these values, so that a finished
 #: model is not mapped again after an upgrade for a setting it could not have had
 ADDED_LATER: dict[str, Any] = {"ba_global_growth": 0.0, "ba_global_refinements": 0, "ba_direct_max_images": 0,
-                               "contradicted_remaps": 2, "refine_distortion": True, "mend_seam": True}
+                               "contradicted_remaps": 2, "refine_distortion": True, "mend_seam": True,
+                               "two_view_points": False}
 
 
 #: settings that do not change the model: how often a long mapping keeps its models so far

@@ -24,9 +24,6 @@ NO_RESULT = {
                                  "relax the score.* thresholds"),
     "verification rejects every pair": (lambda t, out: ["-s", "match.min_num_inliers=100000"], "none of the",
                                         "match.min_num_inliers"),
-    # the pair of the scene with the most inlier matches (over the 100 COLMAP's mapper needs to start)
-    "only two close views matched": (lambda t, out: ["--pairs", _pairs_file(t, "{} {}\n".format(
-        *best_matched_pair(out)[:2]))], "no model could be built", "degrees of triangulation angle"),
 }
 
 
@@ -41,6 +38,22 @@ def test_run_without_result_keeps_previous_outputs(case, finished_run, images, t
     assert_kept(before, finished_run, PREVIOUS_OUTPUTS)
     assert not (finished_run / ".sara" / "database.next.db").exists()
     assert not (finished_run / ".sara" / "pairs.next").exists()
+
+
+def test_a_mapping_without_a_model_keeps_previous_outputs(finished_run, images, tmp_path, run_cli, monkeypatch):
+    """The mapper builds nothing from the pair of the scene with the most inlier matches (over the 100
+    COLMAP's mapper needs to start): exit 5, the reason from the verified pairs, the previous outputs
+    kept. Two views make a model now (with the points seen in two views), so COLMAP's refusal is
+    stood in for: every mapping returns no model."""
+    from sara import colmap
+
+    monkeypatch.setattr(colmap, "incremental_mapping", lambda *args, **kwargs: colmap.MappedModels({}))
+    pairs = _pairs_file(tmp_path, "{} {}\n".format(*best_matched_pair(finished_run)[:2]))
+    before = snapshot(finished_run)
+    result = run_cli("run", images, finished_run, "-q", "--pairs", pairs)
+    assert_error(result, 5, "no model could be built", "degrees of triangulation angle", "two views only")
+    assert_kept(before, finished_run, PREVIOUS_OUTPUTS)
+    assert not (finished_run / ".sara" / "database.next.db").exists()
 
 
 @pytest.mark.parametrize("case", ["empty pairs file", "no verified pair"])

@@ -4,13 +4,14 @@ evaluate` on what it cannot score, and too few images each give one line."""
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 from pathlib import Path
 
 import pytest
 
-from harness import assert_error, assert_kept, assert_ok, best_matched_pair, snapshot, truncate
+from harness import assert_error, assert_kept, assert_ok, best_matched_pair, registered, snapshot, truncate
 
 BAD_VALUES = {
     "--seed -1": (["--seed", "-1"], "--seed", "from 0 to 2147483647"),
@@ -118,9 +119,10 @@ def test_one_image_is_refused(images, tmp_path, run_cli):
     assert not (tmp_path / "out").exists()
 
 
-def test_two_close_views_say_why_no_model(images, finished_run_template, tmp_path, run_cli):
-    """Two views with over 100 inlier matches (the pair of the scene with the most): the message says
-    what COLMAP's mapper lacks (triangulation angle), not "too few verified matches"."""
+def test_two_views_make_a_model(images, synthetic_scene, finished_run_template, tmp_path, run_cli):
+    """Two photos (the pair of the scene with the most inlier matches): COLMAP triangulates only points
+    seen in three views or more, so it built no model of two views (exit 5 before); the mapper now maps
+    again with the points seen in two, and both views are posed as the truth has them."""
     *two, inliers = best_matched_pair(finished_run_template)
     assert inliers > 100
     folder = tmp_path / "two"
@@ -128,7 +130,26 @@ def test_two_close_views_say_why_no_model(images, finished_run_template, tmp_pat
     for name in two:
         shutil.copyfile(images / name, folder / name)
     result = run_cli("run", folder, tmp_path / "out", "-q")
-    line = assert_error(result, 5, "no model could be built", "inlier matches", "16 degrees")
+    assert_ok(result)
+    assert "points seen in two views only" in result.err
+    assert registered(tmp_path / "out") == sorted(two)
+    info = json.loads((tmp_path / "out" / ".sara" / "map.json").read_text())["info"]
+    assert info["two_view_points"] is True
+    scored = run_cli("evaluate", tmp_path / "out" / "sparse" / "0", synthetic_scene[1], "--json", tmp_path / "m.json")
+    assert_ok(scored)
+    assert json.loads((tmp_path / "m.json").read_text())["rel_rotation_error_median_deg"] < 1.0
+
+
+def test_two_views_that_never_moved_say_why_no_model(images, tmp_path, run_cli):
+    """The same photo under two names: thousands of inlier matches and no triangulation angle at all.
+    The message says what COLMAP's mapper lacks (the angle), not "too few verified matches"."""
+    folder = tmp_path / "two"
+    folder.mkdir()
+    first = sorted(images.iterdir())[0]
+    for name in ("a.png", "b.png"):
+        shutil.copyfile(first, folder / name)
+    result = run_cli("run", folder, tmp_path / "out", "-q")
+    line = assert_error(result, 5, "no model could be built", "inlier matches", "16 degrees", "two views only")
     assert "too few verified matches" not in line
     assert not (tmp_path / "out" / "sparse").exists() and not (tmp_path / "out" / "report.md").exists()
 

@@ -34,6 +34,7 @@ class MappedModels:
 
     reconstructions: dict[int, pycolmap.Reconstruction]
     forward_start: bool = False  # the mapper started from a pair that moved along the viewing direction
+    two_view_points: bool = False  # mapped with the points seen in two views only (`ignore_two_view_tracks` off)
     seed: int | None = None  # the random seed of the mapping that built them
     agreement_check: Agreement | None = None  # the largest model against its pairs, where checked
     remaps: int = 0  # mappings under other seeds because the first model was contradicted
@@ -63,7 +64,7 @@ def incremental_mapping(
     on_next_image: Callable[[], None] | None = None, input_path: Path | None = None,
     forward_start: bool = False, ba_global_ratio: float | None = None, ba_global_refinements: int | None = None,
     direct_solver_up_to: int | None = None, first_image: str | None = None,
-    checkpoint: stepwise.Checkpoint | None = None, refine_extra_params: bool = True,
+    checkpoint: stepwise.Checkpoint | None = None, refine_extra_params: bool = True, two_view_points: bool = False,
 ) -> MappedModels:
     """COLMAP's incremental mapper; with `input_path` it continues from that model (registers the
     images it lacks, then bundle-adjusts) instead of starting from an empty one.
@@ -85,6 +86,7 @@ def incremental_mapping(
     (`stepwise.Checkpoint`; COLMAP's own loop has none).
     `refine_extra_params`: the adjustments refine the cameras' distortion (COLMAP's default); False
     holds it where it starts.
+    `two_view_points`: also triangulate the points seen in two views only (COLMAP ignores them).
     """
     opts = pycolmap.IncrementalPipelineOptions()
     if forward_start:
@@ -95,6 +97,7 @@ def incremental_mapping(
         opts.ba_global_max_refinements = ba_global_refinements
     opts.min_model_size = min_model_size
     opts.ba_refine_extra_params = refine_extra_params
+    opts.triangulation.ignore_two_view_tracks = not two_view_points
     opts.num_threads = num_threads
     opts.mapper.abs_pose_min_num_inliers = abs_pose_min_num_inliers
     opts.mapper.abs_pose_min_inlier_ratio = abs_pose_min_inlier_ratio

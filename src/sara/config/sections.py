@@ -189,6 +189,10 @@ class MapConfig:
         in one model. true: a first model that
         holds under half the views the verified pairs join is mapped again with it held, and that
         mapping is kept (and its continuations hold it) when its largest model holds more views.""")
+    two_view_points: bool = option(False, flag(), """Incremental mapper: also triangulate points seen in
+        two views only (COLMAP ignores them: ignore_two_view_tracks). With only two photos every point is
+        seen in two, so COLMAP builds no model of them. false: where no model could be built otherwise,
+        the mapper maps once more with them (two photos of a facade: 2 of 2 views, 4,696 points).""")
     contradicted_remaps: int = option(2, ints(0), """Incremental mapper: when more than 0.5% of the verified
         pairs between the first model's views, or at least 20 of them, contradict it (their matches lie
         over 4 px off its epipolar lines: a model bent where the views pass a place twice), map again at
