@@ -186,5 +186,9 @@ def test_webp_photos_are_used_and_exported(images, tmp_path, run_cli):
     from sara.colmap.model import read_model
 
     assert sorted(read_model(tmp_path / "splat" / "sparse" / "0").names) == exported
+    assert_ok(run_cli("export", out, tmp_path / "ns", "--format", "nerfstudio", "-q"))  # not undistorted: copies
+    frames = json.loads((tmp_path / "ns" / "transforms.json").read_text())["frames"]
+    assert sorted(Path(f["file_path"]).name for f in frames) == exported
+    assert sorted(p.name for p in (tmp_path / "ns" / "images").iterdir()) == exported
     with Image.open(tmp_path / "splat" / "images" / f"{names[0]}.jpg") as im:
         assert im.format == "JPEG"

@@ -99,11 +99,17 @@ def undistort_flat(model_dir: Path, images_root: Path, dest: Path, max_image_siz
     return dest / "sparse" / "0"
 
 
+def jpeg_name(name: str) -> str:
+    """`name.jpg` for an image the run read from a JPEG copy (HEIC, WebP, AVIF), else `name`: exported
+    files are named for what they hold."""
+    return f"{name}.jpg" if read_from_copy(name) else name
+
+
 def _jpeg_names(model_dir: Path, images_root: Path, tmp: Path, names: list[str]) -> tuple[Path, Path, list[str]]:
     """(model, image folder, names) in which each image COLMAP cannot write is named `<name>.jpg`:
     the model renamed into `tmp/renamed`, the images linked into `tmp/linked` under the new names.
     Unchanged where no image needs it."""
-    jpeg = {name: f"{name}.jpg" if read_from_copy(name) else name for name in names}
+    jpeg = {name: jpeg_name(name) for name in names}
     if all(new == name for name, new in jpeg.items()):
         return model_dir, images_root, names
     model.write_model(model_dir, tmp / "renamed", rename=jpeg)

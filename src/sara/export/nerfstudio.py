@@ -16,7 +16,7 @@ import numpy as np
 
 from ..colmap import model
 from ..io import write_text_atomic
-from .common import ExportJob, copy_images, flat_names, undistort_flat
+from .common import ExportJob, copy_images, flat_names, jpeg_name, undistort_flat
 
 NERFSTUDIO_PLY = "sparse_pc.ply"
 
@@ -45,7 +45,7 @@ def write(job: ExportJob) -> None:
         data = model.read_model(model_dir)
         rename = {name: name for name in data.names}
     else:
-        rename = flat_names(data.names)
+        rename = {name: jpeg_name(flat) for name, flat in flat_names(data.names).items()}
         copy_images(job.images_root, job.dest / "images", rename, job.progress)
     meta = nerfstudio_transforms(data, rename)
     write_ply(job.dest / NERFSTUDIO_PLY, data.points_xyz @ APPLIED_TRANSFORM[:, :3].T, data.points_rgb)
