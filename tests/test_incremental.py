@@ -192,6 +192,47 @@ def test_removed_images_leave_database_features_pairs_and_model(copy_of_first, r
     assert state["model"] == sorted(os.listdir(images))
 
 
+def test_renamed_images_keep_their_features_matches_and_poses(copy_of_first, run_cli):
+    """Files renamed (a photo manager's export, frames renumbered): the same bytes under new names are
+    renamed in the database, features file, pairs and model; nothing is extracted again. Before, a
+    folder renamed as a whole was refused ("features made from other images")."""
+    images, out = copy_of_first
+    names = sorted(os.listdir(images))
+    renamed = {name: f"IMG_{name}" for name in names[:3]}  # half, then (below) all of them
+    with h5py.File(out / "features-sift.h5", "r") as h5:
+        keypoints = {name: h5[name]["keypoints"][()] for name in names}
+    matched_before = len(colmap.verified_image_pairs(out / "database.db"))
+    for old, new in renamed.items():
+        (images / old).rename(images / new)
+    assert_ok(run_cli("run", images, out, "-q"))
+    state = _state(out)
+    assert state["update"]["num_renamed"] == 3 and state["update"]["renamed"] == renamed
+    assert state["update"]["num_extracted"] == 0 and state["update"]["num_added"] == 0
+    for key in ("database", "features", "model"):
+        assert state[key] == sorted(os.listdir(images)), key
+    with h5py.File(out / "features-sift.h5", "r") as h5:
+        for old, new in renamed.items():
+            np.testing.assert_array_equal(h5[new]["keypoints"][()], keypoints[old])
+    assert state["update"]["num_pairs_matched"] < matched_before  # the earlier matches were kept
+    for name in sorted(os.listdir(images)):  # the whole folder renamed once more
+        (images / name).rename(images / f"x_{name}")
+    assert_ok(run_cli("run", images, out, "-q"))
+    state = _state(out)
+    assert state["update"]["num_renamed"] == len(names) and state["update"]["num_extracted"] == 0
+    assert state["model"] == sorted(os.listdir(images))
+
+
+def test_compare_tells_renamed_images_from_added_and_removed():
+    from sara.incremental import compare
+
+    old = {"a.jpg": "1", "b.jpg": "2", "c.jpg": "3", "d.jpg": "3"}
+    new = {"a.jpg": "1", "B.jpg": "2", "c2.jpg": "3", "e.jpg": "9", "d.jpg": "4"}
+    change = compare(old, new)
+    assert change.renamed == {"b.jpg": "B.jpg", "c.jpg": "c2.jpg"}
+    assert change.added == ["e.jpg"] and change.removed == [] and change.changed == ["d.jpg"]
+    assert change.to_extract == ["d.jpg", "e.jpg"] and change.to_drop == ["d.jpg"]
+
+
 def test_changed_image_is_extracted_again(copy_of_first, run_cli):
     images, out = copy_of_first
     name = sorted(os.listdir(images))[1]

@@ -25,13 +25,14 @@ import logging
 import os
 import shutil
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import h5py
 
 from . import colmap, extract
+from .colmap.model import write_model
 from .config import ExtractConfig
 from .execute import Executor
 from .features import features_file_name, make_backend
@@ -39,7 +40,8 @@ from .features.sift import DatabaseToH5, not_extracted
 from .io import atomic_path, records
 from .io.h5 import has_features
 from .io.images import ImageSet, set_aside
-from .io.pairs import Pair, read_pairs
+from .io.pairs import Pair, read_pairs, write_pairs
+from .io.scores import read_scores_csv, write_scores_csv
 
 logger = logging.getLogger(__name__)
 
@@ -54,11 +56,13 @@ MATCHED_NAME = "matched.db"
 
 @dataclass(frozen=True)
 class Change:
-    """How a collection differs from the one a run was made from (sorted image names)."""
+    """How a collection differs from the one a run was made from (sorted image names); `renamed`:
+    old name -> new name of the images whose content is under a new name (neither added nor removed)."""
 
     added: list[str]
     removed: list[str]
     changed: list[str]
+    renamed: dict[str, str] = field(default_factory=dict)
 
     @property
     def to_drop(self) -> list[str]:
@@ -69,14 +73,22 @@ class Change:
         return sorted(self.added + self.changed)
 
     def counts(self) -> dict[str, int]:
-        return {"num_added": len(self.added), "num_removed": len(self.removed), "num_changed": len(self.changed)}
+        return {"num_added": len(self.added), "num_removed": len(self.removed), "num_changed": len(self.changed),
+                "num_renamed": len(self.renamed)}
 
 
 def compare(old: dict[str, str], new: dict[str, str]) -> Change:
-    """The images of `new` (name -> content digest) that `old` lacks, the reverse, and those whose
-    content differs."""
-    return Change(added=sorted(set(new) - set(old)), removed=sorted(set(old) - set(new)),
-                  changed=sorted(n for n in set(old) & set(new) if old[n] != new[n]))
+    """The images of `new` (name -> content digest) that `old` lacks, the reverse, those whose content
+    differs, and those renamed: a name that came with the content of a name that went (one for one,
+    in name order, where several files hold the same bytes)."""
+    added, removed = sorted(set(new) - set(old)), sorted(set(old) - set(new))
+    gone: dict[str, list[str]] = {}
+    for name in removed:
+        gone.setdefault(old[name], []).append(name)
+    renamed = {gone[new[name]].pop(0): name for name in added if gone.get(new[name])}
+    return Change(added=[n for n in added if n not in set(renamed.values())],
+                  removed=[n for n in removed if n not in renamed],
+                  changed=sorted(n for n in set(old) & set(new) if old[n] != new[n]), renamed=renamed)
 
 
 class SettingsChangedError(extract.OutputMismatchError):
@@ -132,8 +144,8 @@ def update_features(conf: ExtractConfig, images: ImageSet, out_dir: Path, *, exe
     if setting is not None:
         raise SettingsChangedError(f"{out_dir} holds features made with other extraction settings: {setting}; use "
                                    "another output folder or --overwrite to extract them again")
-    if not any(old_digests.get(name) == digest for name, digest in digests.items()):
-        return None  # no image in common: another collection, which the extract stage refuses
+    if not set(old_digests.values()) & set(digests.values()):
+        return None  # no image in common, under any name: another collection, which the extract stage refuses
     current = ledger(out_dir)
     if current.get("key") != key or current.get("phase") != "features":
         current = _plan(out_dir, conf, info, digests, key)
@@ -178,13 +190,38 @@ def _plan(out_dir: Path, conf: ExtractConfig, info: dict[str, Any], digests: dic
     elif colmap.has_model(main) and not carried:
         shutil.copytree(main, work / MODEL_NAME)
     colmap.copy_database(out_dir / extract.DB_NAME, work / extract.DB_NAME)
+    _rename(work, change.renamed)
+    paired = {change.renamed.get(name, name): digest for name, digest in paired.items()}
     plan = {"phase": "features", "old_key": info.get("key"), "paired_images": paired, "images": digests,
-            **change.counts(), "added": change.added, "removed": change.removed, "changed": change.changed}
+            **change.counts(), "added": change.added, "removed": change.removed, "changed": change.changed,
+            "renamed": change.renamed}
     _save(out_dir, key, plan)
-    logger.warning("update: %d images added, %d removed, %d changed since the last run: extracting %d, keeping the "
-                   "features, matches and model of the other %d", len(change.added), len(change.removed),
-                   len(change.changed), len(change.to_extract), len(digests) - len(change.to_extract))
+    logger.warning("update: %d images added, %d removed, %d changed, %d renamed since the last run: extracting %d, "
+                   "keeping the features, matches and model of the other %d", len(change.added),
+                   len(change.removed), len(change.changed), len(change.renamed), len(change.to_extract),
+                   len(digests) - len(change.to_extract))
     return ledger(out_dir)
+
+
+def _rename(work: Path, renamed: dict[str, str]) -> None:
+    """The images renamed under their new names in the update's copies of the database, pairs, scores
+    and model: their features, matches and poses are kept as they were."""
+    if not renamed:
+        return
+    ids = colmap.image_ids(work / extract.DB_NAME)
+    colmap.rename_images(work / extract.DB_NAME, {ids[old]: new for old, new in renamed.items() if old in ids})
+    if (work / PAIRS_NAME).is_file():
+        pairs = read_pairs(work / PAIRS_NAME)
+        write_pairs(work / PAIRS_NAME, [(renamed.get(a, a), renamed.get(b, b)) for a, b in pairs])
+    if (work / SCORES_NAME).is_file():
+        scores, roles = read_scores_csv(work / SCORES_NAME)
+        scores.name0 = [renamed.get(n, n) for n in scores.name0]
+        scores.name1 = [renamed.get(n, n) for n in scores.name1]
+        write_scores_csv(work / SCORES_NAME, scores, roles)
+    if colmap.has_model(work / MODEL_NAME):
+        write_model(work / MODEL_NAME, work / (MODEL_NAME + ".renamed"), rename=renamed)
+        shutil.rmtree(work / MODEL_NAME)
+        (work / (MODEL_NAME + ".renamed")).rename(work / MODEL_NAME)
 
 
 def _remove(path: Path) -> None:
@@ -252,9 +289,10 @@ def _write_features(out_dir: Path, conf: ExtractConfig, images: ImageSet, change
     db = work / extract.DB_NAME
     with_keypoints = colmap.images_with_keypoints(db)
     keep = with_keypoints - set(change.to_extract)
+    was = {new_name: old_name for old_name, new_name in change.renamed.items()}
     with atomic_path(work / name) as tmp, h5py.File(tmp, "w") as new, h5py.File(out_dir / name, "r") as old:
         for image in sorted(keep):
-            _copy_group(old, new, image)
+            _copy_group(old, new, image, was.get(image, image))
         if extracted:
             with h5py.File(extracted["path"], "r") as added:
                 for image in extracted["names"]:
@@ -263,10 +301,11 @@ def _write_features(out_dir: Path, conf: ExtractConfig, images: ImageSet, change
         DatabaseToH5(db, new, {image: images.sizes[image] for image in with_keypoints - keep}).update()
 
 
-def _copy_group(src: h5py.File, dst: h5py.File, name: str) -> None:
-    """Copy the group of image `name` (a path with `/` for images in subfolders)."""
+def _copy_group(src: h5py.File, dst: h5py.File, name: str, src_name: str | None = None) -> None:
+    """Copy the group of image `name` (a path with `/` for images in subfolders), from `src_name`
+    when it was under another name."""
     parent = name.rpartition("/")[0]
-    src.copy(src[name], dst.require_group(parent) if parent else dst, name=name.rpartition("/")[2])
+    src.copy(src[src_name or name], dst.require_group(parent) if parent else dst, name=name.rpartition("/")[2])
 
 
 def _new_info(out_dir: Path, info: dict[str, Any], digests: dict[str, str], extracted: int, failed: dict[str, str],
@@ -349,14 +388,16 @@ def finish(out_dir: Path, extract_key: str, summary: dict[str, Any]) -> dict[str
     if current is None:
         done = ledger(out_dir)
         return done.get("summary") if done.get("phase") == "done" and done.get("key") == extract_key else None
-    report = {**{k: current.get(k, 0) for k in ("num_added", "num_removed", "num_changed", "num_extracted")},
+    report = {**{k: current.get(k, 0) for k in ("num_added", "num_removed", "num_changed", "num_renamed",
+                                                   "num_extracted")},
               **summary, "added": current.get("added", []), "removed": current.get("removed", []),
-              "changed": current.get("changed", [])}
+              "changed": current.get("changed", []), "renamed": current.get("renamed", {})}
     _save(out_dir, extract_key, {"phase": "done", "summary": report})
     shutil.rmtree(_work(out_dir), ignore_errors=True)
-    logger.warning("update: %d added, %d removed, %d changed; %d images extracted, %d pairs scored, %d pairs "
-                   "matched (%d earlier pairs kept, %d dropped)", report["num_added"], report["num_removed"],
-                   report["num_changed"], report["num_extracted"], report.get("num_pairs_scored", 0),
+    logger.warning("update: %d added, %d removed, %d changed, %d renamed; %d images extracted, %d pairs scored, %d "
+                   "pairs matched (%d earlier pairs kept, %d dropped)", report["num_added"], report["num_removed"],
+                   report["num_changed"], report["num_renamed"], report["num_extracted"],
+                   report.get("num_pairs_scored", 0),
                    report.get("num_pairs_matched", 0), report.get("num_pairs_kept", 0),
                    report.get("num_pairs_dropped", 0))
     return report

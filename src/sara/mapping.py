@@ -49,7 +49,8 @@ def run(conf: MapConfig, db_path: Path, images_root: Path, out_dir: Path, *, see
     out_dir = Path(out_dir)
     sparse = out_dir / "sparse"
     key = state_key(conf, seed, upstream_key)
-    if not overwrite and records.is_done(out_dir, STAGE, key) and _model_intact(out_dir, sparse):
+    if not overwrite and records.is_done(out_dir, STAGE, key) and _model_intact(out_dir, sparse) \
+            and not (input_model is not None and _names_gone(sparse, db_path)):
         logger.info("map: model up to date, skipping")
         if commit is not None:
             commit()
@@ -266,6 +267,12 @@ def adopt(out_dir: Path, info: dict[str, Any], *, key: str | None = None) -> Non
     recorded = records.read_record(out_dir, STAGE) or {}
     records.mark_done(out_dir, STAGE, key if key is not None else recorded.get("key", ""), info,
                       outputs={"sparse": model_digest(Path(out_dir) / "sparse")})
+
+
+def _names_gone(sparse: Path, db_path: Path) -> bool:
+    """Whether the main model poses images under names the database no longer has: an update that
+    only renamed images leaves the matches as they were (the stage's key holds), not the names."""
+    return not colmap.registered_images(sparse / "0") <= set(colmap.database_images(db_path))
 
 
 def _model_intact(out_dir: Path, sparse: Path) -> bool:

@@ -125,7 +125,8 @@ def render_report(report: RunReport) -> str:
     update = s.get("update")
     if update:
         lines += ["", f"Update: {update['num_added']} images added, {update['num_removed']} removed, "
-                      f"{update['num_changed']} changed since the previous run; {update['num_extracted']} extracted, "
+                      f"{update['num_changed']} changed, {update.get('num_renamed', 0)} renamed since the previous "
+                      f"run; {update['num_extracted']} extracted, "
                       f"{update.get('num_pairs_scored', 0)} pairs scored, {update.get('num_pairs_matched', 0)} "
                       f"pairs matched ({update.get('num_pairs_kept', 0)} earlier pairs kept, "
                       f"{update.get('num_pairs_dropped', 0)} dropped)"]
