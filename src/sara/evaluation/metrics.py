@@ -17,12 +17,13 @@ estimate is a list of model folders, one per connected component (``sparse/0``, 
 from __future__ import annotations
 
 import logging
-import math
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+
+from ..rotations import angle_between_deg as rotation_angle_deg  # the angle of R_a^T R_b, here under its old name
 
 logger = logging.getLogger(__name__)
 
@@ -57,16 +58,6 @@ class Pose:
 
 # ----------------------------------------------------------------------------------------------
 # Pure cores on arrays
-
-
-def rotation_angle_deg(R_a: np.ndarray, R_b: np.ndarray) -> np.ndarray:
-    """Angle of the rotation ``R_a^T R_b`` in degrees, for (..., 3, 3) stacks of rotations.
-
-    Uses ``||R_a - R_b||_F = 2 sqrt(2) sin(angle / 2)``, which stays accurate near zero (unlike
-    the arccos of the trace). Returns (...,) float64 in [0, 180].
-    """
-    frobenius = np.linalg.norm(np.asarray(R_a) - np.asarray(R_b), axis=(-2, -1))
-    return np.degrees(2.0 * np.arcsin(np.clip(frobenius / (2.0 * math.sqrt(2.0)), 0.0, 1.0)))
 
 
 def direction_angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -51,6 +51,7 @@ from ..descriptors import descriptor_distance_ratios, l2_normalize, mutual_match
 from ..execute import Executor, SerialExecutor
 from ..io.h5 import FeatureCache, Features
 from ..io.scores import PairScores
+from ..rotations import rotvec_from_matrix
 from .twoview import estimate_relative_pose, inlier_parallax_deg, sampson_errors
 
 if TYPE_CHECKING:
@@ -213,9 +214,7 @@ def _rotation_vector(R: np.ndarray | None) -> tuple[float, float, float]:
     """(3, 3) rotation -> axis times angle (radians); NaN without a rotation."""
     if R is None:
         return (math.nan, math.nan, math.nan)
-    from scipy.spatial.transform import Rotation  # here: `sara extract` imports this module, not scipy
-
-    x, y, z = Rotation.from_matrix(R).as_rotvec()
+    x, y, z = rotvec_from_matrix(R)
     return (float(x), float(y), float(z))
 
 

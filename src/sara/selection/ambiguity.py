@@ -37,10 +37,10 @@ import logging
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from ..config import GraphConfig
 from ..io.scores import PairScores
+from ..rotations import angle_between_deg, matrix_from_rotvec
 from .spanning import _check_graph
 
 logger = logging.getLogger(__name__)
@@ -93,9 +93,9 @@ def closure_errors_deg(rotvec: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     rotvec: (E, 3) rotation vectors of ``cam_j_from_cam_i`` of each pair ``(i, j)``, ``i < j``."""
     if len(triangles) == 0:
         return np.zeros(0)
-    rot = Rotation.from_rotvec(np.asarray(rotvec, dtype=np.float64)[triangles.reshape(-1)])
+    rot = matrix_from_rotvec(np.asarray(rotvec, dtype=np.float64)[triangles.reshape(-1)])
     ij, jk, ik = rot[0::3], rot[1::3], rot[2::3]
-    return np.degrees((ik.inv() * jk * ij).magnitude())
+    return angle_between_deg(ik, jk @ ij)
 
 
 def inconsistent_pairs(
