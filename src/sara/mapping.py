@@ -152,18 +152,22 @@ def _map(conf: MapConfig, db_path: Path, images_root: Path, tmp: Path, seed: int
 def _global(conf: MapConfig, db_path: Path, images_root: Path, tmp: Path, seed: int, progress: bool,
             min_num_inliers: int, checkpoint: Checkpoint | None = None) -> colmap.MappedModels:
     """COLMAP's global mapper, its largest model checked against its own verified pairs; when they
-    contradict it (`map_retries.contradicted`) and `map.contradicted_remaps` allows, the incremental
-    mapper maps the scene too and the better model is kept (`map_retries.better`). On a sparse graph
+    contradict it (`map_retries.contradicted`) and `map.contradicted_remaps` allows, or when it built
+    no model, the incremental mapper maps the scene too and the better model is kept (`map_retries.better`). On a sparse graph
     the global mapper glues stretches that few pairs join at wrong rotations, where the incremental
     one splits the scene (200-image synthetic street, SARA's pairs: 126 of 455 pairs off by over 10
     degrees, none wrong)."""
     recs = colmap.global_mapping(db_path, images_root, tmp, seed=seed, num_threads=conf.num_threads)
     recs.seed, recs.agreement_check = seed, recs.agreement(db_path, min_num_inliers)
-    if not map_retries.contradicted(recs.agreement_check) or conf.contradicted_remaps == 0:
+    if recs.largest == 0:
+        logger.warning("map: the global mapper built no model: mapping with the incremental mapper (and its "
+                       "retries: a forward start, the points seen in two views only)")
+    elif not map_retries.contradicted(recs.agreement_check) or conf.contradicted_remaps == 0:
         return recs
-    logger.warning("map: %d of the %d verified pairs between the views of the global mapper's largest model "
-                   "contradict it: mapping with the incremental mapper as well and keeping the model its pairs "
-                   "agree with", len(recs.agreement_check.contradicted), recs.agreement_check.checked)
+    else:
+        logger.warning("map: %d of the %d verified pairs between the views of the global mapper's largest model "
+                       "contradict it: mapping with the incremental mapper as well and keeping the model its pairs "
+                       "agree with", len(recs.agreement_check.contradicted), recs.agreement_check.checked)
     (tmp / "incremental").mkdir()
     again, _, _ = _map(replace(conf, mapper="incremental"), db_path, images_root, tmp / "incremental", seed,
                        progress, min_num_inliers=min_num_inliers,

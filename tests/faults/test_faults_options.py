@@ -119,22 +119,24 @@ def test_one_image_is_refused(images, tmp_path, run_cli):
     assert not (tmp_path / "out").exists()
 
 
-def test_two_views_make_a_model(images, synthetic_scene, finished_run_template, tmp_path, run_cli):
+@pytest.mark.parametrize("mapper", ["incremental", "global"])
+def test_two_views_make_a_model(mapper, images, synthetic_scene, finished_run_template, tmp_path, run_cli):
     """Two photos (the pair of the scene with the most inlier matches): COLMAP triangulates only points
     seen in three views or more, so it built no model of two views (exit 5 before); the mapper now maps
-    again with the points seen in two, and both views are posed as the truth has them."""
+    again with the points seen in two, and both views are posed as the truth has them. The global
+    mapper builds none of two views either: the incremental one then maps them, with its retries."""
     *two, inliers = best_matched_pair(finished_run_template)
     assert inliers > 100
     folder = tmp_path / "two"
     folder.mkdir()
     for name in two:
         shutil.copyfile(images / name, folder / name)
-    result = run_cli("run", folder, tmp_path / "out", "-q")
+    result = run_cli("run", folder, tmp_path / "out", "-q", "-s", f"map.mapper={mapper}")
     assert_ok(result)
     assert "points seen in two views only" in result.err
     assert registered(tmp_path / "out") == sorted(two)
     info = json.loads((tmp_path / "out" / ".sara" / "map.json").read_text())["info"]
-    assert info["two_view_points"] is True
+    assert info["two_view_points"] is True and info["mapper"] == "incremental"
     scored = run_cli("evaluate", tmp_path / "out" / "sparse" / "0", synthetic_scene[1], "--json", tmp_path / "m.json")
     assert_ok(scored)
     assert json.loads((tmp_path / "m.json").read_text())["rel_rotation_error_median_deg"] < 1.0
