@@ -153,10 +153,10 @@ def _global(conf: MapConfig, db_path: Path, images_root: Path, tmp: Path, seed: 
             min_num_inliers: int, checkpoint: Checkpoint | None = None) -> colmap.MappedModels:
     """COLMAP's global mapper, its largest model checked against its own verified pairs; when they
     contradict it (`map_retries.contradicted`) and `map.contradicted_remaps` allows, or when it built
-    no model, the incremental mapper maps the scene too and the better model is kept (`map_retries.better`). On a sparse graph
-    the global mapper glues stretches that few pairs join at wrong rotations, where the incremental
-    one splits the scene (200-image synthetic street, SARA's pairs: 126 of 455 pairs off by over 10
-    degrees, none wrong)."""
+    no model, the incremental mapper maps the scene too and the better model is kept
+    (`map_retries.better`). On a sparse graph the global mapper glues stretches that few pairs join
+    at wrong rotations, where the incremental one splits the scene (200-image synthetic street,
+    SARA's pairs: 126 of 455 pairs off by over 10 degrees, none wrong)."""
     recs = colmap.global_mapping(db_path, images_root, tmp, seed=seed, num_threads=conf.num_threads)
     recs.seed, recs.agreement_check = seed, recs.agreement(db_path, min_num_inliers)
     if recs.largest == 0:
