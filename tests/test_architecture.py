@@ -15,7 +15,8 @@ SRC = Path(__file__).resolve().parents[1] / "src" / "sara"
 
 #: room -> floor; a room may import rooms on its own floor or below, never above
 FLOORS = {
-    "__init__": 0, "registry": 0, "tables": 0, "descriptors": 0, "config": 0, "execute": 0, "eta": 0,
+    "__init__": 0, "registry": 0, "tables": 0, "descriptors": 0, "rotations": 0, "config": 0, "execute": 0,
+    "eta": 0,
     "io": 1,
     "colmap": 2, "weights": 2,
     "features": 3, "matchers": 3, "scoring": 3, "retrieval": 3, "selection": 3, "evaluation": 3,

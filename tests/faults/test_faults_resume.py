@@ -76,11 +76,14 @@ def test_other_extraction_settings_refused(finished_run, images, run_cli):
 
 
 def test_other_image_folder_refused(finished_run, images, tmp_path, run_cli):
-    """A folder sharing no image with the run's is not an update of it (tests/test_incremental.py)."""
+    """A folder sharing no image with the run's, under any name, is not an update of it
+    (tests/test_incremental.py; the same images renamed are one)."""
+    from PIL import Image
+
     other = tmp_path / "other_images"
     other.mkdir()
     for k, name in enumerate(sorted(os.listdir(images))):
-        shutil.copyfile(images / name, other / f"other-{k}.png")
+        Image.open(images / name).transpose(Image.Transpose.FLIP_LEFT_RIGHT).save(other / f"other-{k}.png")
     before = snapshot(finished_run)
     result = run_cli("run", other, finished_run, "-q")
     assert_error(result, 3, "other images")
