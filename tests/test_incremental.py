@@ -231,6 +231,9 @@ def test_compare_tells_renamed_images_from_added_and_removed():
     assert change.renamed == {"b.jpg": "B.jpg", "c.jpg": "c2.jpg"}
     assert change.added == ["e.jpg"] and change.removed == [] and change.changed == ["d.jpg"]
     assert change.to_extract == ["d.jpg", "e.jpg"] and change.to_drop == ["d.jpg"]
+    moved = compare({"a/x.jpg": "1", "a/y.jpg": "2"}, {"b/x.jpg": "1", "a/z.jpg": "2"}, across_folders=False)
+    assert moved.renamed == {"a/y.jpg": "a/z.jpg"}  # per-folder cameras: the move to b/ is removed and added
+    assert moved.added == ["b/x.jpg"] and moved.removed == ["a/x.jpg"]
 
 
 def test_changed_image_is_extracted_again(copy_of_first, run_cli):

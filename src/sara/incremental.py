@@ -77,15 +77,20 @@ class Change:
                 "num_renamed": len(self.renamed)}
 
 
-def compare(old: dict[str, str], new: dict[str, str]) -> Change:
+def compare(old: dict[str, str], new: dict[str, str], *, across_folders: bool = True) -> Change:
     """The images of `new` (name -> content digest) that `old` lacks, the reverse, those whose content
     differs, and those renamed: a name that came with the content of a name that went (one for one,
-    in name order, where several files hold the same bytes)."""
+    in name order, where several files hold the same bytes). Without `across_folders` an image moved
+    to another folder is removed and added (its camera is its folder's)."""
     added, removed = sorted(set(new) - set(old)), sorted(set(old) - set(new))
-    gone: dict[str, list[str]] = {}
+    gone: dict[tuple[str, str], list[str]] = {}
+
+    def where(name: str, digest: str) -> tuple[str, str]:
+        return digest, "" if across_folders else name.rpartition("/")[0]
+
     for name in removed:
-        gone.setdefault(old[name], []).append(name)
-    renamed = {gone[new[name]].pop(0): name for name in added if gone.get(new[name])}
+        gone.setdefault(where(name, old[name]), []).append(name)
+    renamed = {gone[where(name, new[name])].pop(0): name for name in added if gone.get(where(name, new[name]))}
     return Change(added=[n for n in added if n not in set(renamed.values())],
                   removed=[n for n in removed if n not in renamed],
                   changed=sorted(n for n in set(old) & set(new) if old[n] != new[n]), renamed=renamed)
@@ -150,7 +155,8 @@ def update_features(conf: ExtractConfig, images: ImageSet, out_dir: Path, *, exe
     if current.get("key") != key or current.get("phase") != "features":
         current = _plan(out_dir, conf, info, digests, key)
     tic = time.perf_counter()
-    extracted, failed = _update_copies(conf, images, out_dir, compare(old_digests, digests), info, executor, progress)
+    change = compare(old_digests, digests, across_folders=_across_folders(info))
+    extracted, failed = _update_copies(conf, images, out_dir, change, info, executor, progress)
     colmap.copy_database(_work(out_dir) / extract.DB_NAME, _work(out_dir) / MATCHED_NAME)
     current.update(phase="swap", num_extracted=extracted, extract_time_s=time.perf_counter() - tic,
                    extract_info=_new_info(out_dir, info, digests, extracted, failed, time.perf_counter() - tic))
@@ -169,7 +175,7 @@ def _plan(out_dir: Path, conf: ExtractConfig, info: dict[str, Any], digests: dic
     # an earlier update not finished (images changed again meanwhile): its kept pairs and model go on
     carried = pending.get("phase") in ("features", "extracted") and "paired_images" in pending and work.is_dir()
     paired = pending.get("paired_images") if carried else info["images"]
-    change = compare(info["images"], digests)
+    change = compare(info["images"], digests, across_folders=_across_folders(info))
     for name in os.listdir(work) if work.is_dir() else []:
         if not (carried and name in (PAIRS_NAME, SCORES_NAME, MODEL_NAME)):
             _remove(work / name)
@@ -201,6 +207,12 @@ def _plan(out_dir: Path, conf: ExtractConfig, info: dict[str, Any], digests: dic
                    len(change.removed), len(change.changed), len(change.renamed), len(change.to_extract),
                    len(digests) - len(change.to_extract))
     return ledger(out_dir)
+
+
+def _across_folders(info: dict[str, Any]) -> bool:
+    """Whether an image moved to another folder keeps its features as it is: not where each folder
+    has its camera (`camera_mode` per_folder)."""
+    return info.get("camera_mode") != "per_folder"
 
 
 def _rename(work: Path, renamed: dict[str, str]) -> None:
