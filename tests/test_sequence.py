@@ -194,6 +194,37 @@ def test_a_run_with_starved_sift_records_and_prints_the_advice(synthetic_scene, 
     assert json.loads((out / "run.json").read_text())["stages"]["extract"]["low_texture"] is True
 
 
+def test_images_of_their_own_guessed_cameras_get_the_advice(synthetic_scene, tmp_path: Path):
+    """Photos of different sizes without EXIF: a camera each, each from a guessed focal length; the
+    run says so before matching. One camera (same size) or cameras with EXIF focal lengths: silent."""
+    import json
+
+    from PIL import Image
+
+    from harness import run_redirected
+    from sara.pipeline import advice
+
+    assert advice.guessed_cameras({"cameras_guessed": [30, 30]})
+    assert not advice.guessed_cameras({"cameras_guessed": [1, 30]})  # most focal lengths from EXIF
+    assert not advice.guessed_cameras({"camera_mode": "single"})
+    images = tmp_path / "images"
+    images.mkdir()
+    for k, path in enumerate(sorted(synthetic_scene[0].iterdir())[:4]):
+        im = Image.open(path)
+        im.resize((im.width - 8 * k, im.height - 6 * k)).save(images / path.name)  # each its own size
+    out = tmp_path / "out"
+    result = run_redirected("pairs", images, out, "-q", "--method", "exhaustive")
+    assert result.code == 0, result.err
+    assert "4 of the 4 cameras" in result.err and "no EXIF focal length" in result.err
+    assert json.loads((out / ".sara" / "extract.json").read_text())["info"]["cameras_guessed"] == [4, 4]
+    same = tmp_path / "same"
+    same.mkdir()
+    for path in sorted(synthetic_scene[0].iterdir())[:4]:
+        Image.open(path).save(same / path.name)
+    result = run_redirected("pairs", same, tmp_path / "out_same", "-q", "--method", "exhaustive")
+    assert result.code == 0 and "no EXIF focal length" not in result.err
+
+
 @pytest.mark.parametrize("per_frame, expected", [
     (1, {(0, 2), (2, 4), (4, 5)}),
     (2, {(0, 2), (0, 1), (2, 4), (3, 2), (4, 5)}),

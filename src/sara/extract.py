@@ -169,6 +169,9 @@ def run(conf: ExtractConfig, images: ImageSet, out_dir: Path, *, executor: Execu
     info = summarize(counts)
     if estimate_with is not None:
         info["focal"] = _check_focal(db_path, estimate_with)
+    if camera_mode != "single":  # how many of the images' own cameras start from a guessed focal length
+        priors = colmap.camera_priors(db_path)
+        info["cameras_guessed"] = [sum(not known for known in priors.values()), len(priors)]
     info.update(camera_mode=camera_mode, backend=conf.backend, features=h5_path.name,
                 skipped=failed, time_s=time.perf_counter() - tic,
                 settings=settings_of(conf), images=digests, usable_key=key_without(set(failed)))

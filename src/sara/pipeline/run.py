@@ -78,6 +78,8 @@ def _run_stages(conf: PipelineConfig, images: ImageSet, images_root: Path, out_d
     report.stages["extract"] = records.done_info(out_dir, extract.STAGE)  # its time_s: when it really ran
     if stop_after != "extract" and advice.warn_low_texture(report.stages["extract"], conf.extract.backend):
         report.stages["extract"] = {**report.stages["extract"], "low_texture": True}
+    if stop_after != "extract" and (guessed := advice.guessed_cameras(report.stages["extract"])):
+        logger.warning(guessed)
     if first_run or stop_after == "extract":
         report.save()  # `sara map OUT` finds the images through run.json
     if stop_after == "extract":
