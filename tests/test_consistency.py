@@ -258,3 +258,17 @@ def test_an_agreeing_remap_that_lost_more_views_than_the_seam_holds_does_not_rep
     assert map_retries.better(views(9_350 - 162), clean, views(9_350), seam)  # mended, the seam's views left out
     assert not map_retries.better(views(9_350 - 163), clean, views(9_350), seam)
     assert map_retries.better(views(1), clean, views(0), clean)  # any model beats none
+
+
+def test_the_views_that_verified_pairs_join_are_read_once_per_mapping(monkeypatch, tmp_path):
+    """The retries ask for them twice (the distortion's and the forward start's), through copies of
+    their `Attempts`: the database is read once."""
+    from dataclasses import replace
+
+    reads = []
+    monkeypatch.setattr(colmap, "verified_graph", lambda db, n: reads.append(db) or (3, 4, [4, 2], 100))
+    tries = map_retries.Attempts(MapConfig(), tmp_path / "database.db", tmp_path, 0, 15, None,
+                                 lambda *a, **k: None, lambda *a: None)
+    assert tries.reachable() == 4
+    assert replace(tries, conf=replace(tries.conf, refine_distortion=False)).reachable() == 4
+    assert len(reads) == 1

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from . import colmap
@@ -52,6 +52,9 @@ class Attempts:
     checkpoint: Checkpoint | None
     incremental: Callable[..., colmap.MappedModels]
     extend: Callable[[MapConfig, Path, Path], colmap.MappedModels]
+    #: `reachable`'s answer once read; shared by the copies `replace` makes (the database does not
+    #: change while the first mapping is set right)
+    reachable_views: list[int] = field(default_factory=list, repr=False, compare=False)
 
     def derived(self, name: str, *extra: str) -> Checkpoint | None:
         return self.checkpoint.derived(name, *extra) if self.checkpoint is not None else None
@@ -60,8 +63,10 @@ class Attempts:
         return recs.agreement(self.db_path, self.min_num_inliers)
 
     def reachable(self) -> int:
-        """The most views that verified pairs join."""
-        return max(colmap.verified_graph(self.db_path, self.min_num_inliers)[2], default=0)
+        """The most views that verified pairs join (the database is read once)."""
+        if not self.reachable_views:
+            self.reachable_views.append(max(colmap.verified_graph(self.db_path, self.min_num_inliers)[2], default=0))
+        return self.reachable_views[0]
 
 
 def set_right(tries: Attempts, first: colmap.MappedModels) -> colmap.MappedModels:
