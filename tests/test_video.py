@@ -165,6 +165,21 @@ def test_a_folder_of_videos_gives_the_frames_of_each(tmp_path):
     assert video.find_videos(folder) == []  # a folder with images is a folder of images
 
 
+def test_frames_far_apart_by_default_are_said(tmp_path, caplog):
+    """160 frames at 1 fps: the default 150 frames are a second apart or more: the run says how to pick
+    closer ones; with the count given, or frames close enough, it says nothing."""
+    clip = write_video(tmp_path / "walk.avi", noise_frames(160, set()), fps=0.5)
+    with caplog.at_level("WARNING", logger="sara.video"):
+        frames_for_run([clip], tmp_path / "out", FrameSettings(), progress=False)
+    assert "one every 2.1 s" in caplog.text and "--fps 2 (160 frames)" in caplog.text
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="sara.video"):
+        frames_for_run([clip], tmp_path / "out2", FrameSettings(frames=150), progress=False)
+        frames_for_run([write_video(tmp_path / "near.avi", noise_frames(160, set()), fps=5.0)], tmp_path / "out3",
+                       FrameSettings(), progress=False)
+    assert "closer frames" not in caplog.text
+
+
 def test_a_killed_decoding_is_redone_and_leaves_nothing_behind(tmp_path):
     clip = write_video(tmp_path / "walk.avi", noise_frames(6, {1, 3, 4}))
     settings = FrameSettings(frames=3)

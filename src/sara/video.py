@@ -36,6 +36,9 @@ VIDEO_EXTENSIONS = (".mp4", ".mov", ".m4v", ".avi", ".mkv", ".webm", ".mpg", ".m
                     ".flv", ".3gp", ".ogv")
 #: frames picked per video when neither --frames nor --fps is given
 DEFAULT_FRAMES = 150
+#: above this many seconds between the frames picked by default, the run says how to pick closer
+#: ones: a camera carried at walking pace moves about a metre a second, and turns faster than that
+SPARSE_SPACING_S = 1.0
 #: frames are scored for sharpness at most this many pixels a side, which bounds the cost for 4K video
 SHARPNESS_SIDE_PX = 1024
 #: a frame at least this fraction of its window's highest sharpness counts as sharp: the frames of a
@@ -318,7 +321,21 @@ def _picked_frames(videos: list[Path], out_dir: Path, settings: FrameSettings, *
     write_json_atomic(out_dir / RECORD, {**pending, "complete": True, "videos": entries})
     logger.info("%d frames picked from %d video(s) (%s) -> %s", sum(len(e["frames"]) for e in entries),
                 len(entries), settings.flag(), folder)
+    if settings.frames is None and settings.fps is None:
+        _say_spacing(entries)
     return folder
+
+
+def _say_spacing(entries: list[dict[str, Any]]) -> None:
+    """Warn where the default number of frames leaves more than `SPARSE_SPACING_S` between them."""
+    for entry in entries:
+        picked, fps = len(entry["frames"]), entry.get("fps") or 0.0
+        spacing = entry["num_frames"] / fps / max(picked, 1) if fps > 0 else 0.0
+        if spacing > SPARSE_SPACING_S and picked < entry["num_frames"]:
+            logger.warning("%s: %d frames of a %.0f s video, one every %.1f s (the default, --frames %d): a "
+                           "camera that walks or turns needs closer frames, e.g. --fps 2 (%d frames)", entry["name"],
+                           picked, entry["num_frames"] / fps, spacing, DEFAULT_FRAMES,
+                           min(entry["num_frames"], round(2 * entry["num_frames"] / fps)))
 
 
 def read_record(out_dir: Path) -> dict[str, Any] | None:
