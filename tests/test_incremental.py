@@ -176,6 +176,12 @@ def test_added_images_with_learned_features_join_the_features_file_and_database(
     assert colmap.images_with_keypoints(out / "database.db") == set(names)
     with h5py.File(out / "features-xfeat.h5", "r") as h5:  # the kept images' features copied as they were
         assert all(np.array_equal(np.asarray(h5[n]["keypoints"]), kp) for n, kp in kept.items())
+    (images / names[0]).rename(images / f"renamed_{names[0]}")  # a rename: its features move with it
+    assert_ok(run_cli("extract", images, out, *options))
+    assert _record(out, "extract")["info"]["num_extracted"] == 0
+    assert colmap.images_with_keypoints(out / "database.db") == set(os.listdir(images))
+    with h5py.File(out / "features-xfeat.h5", "r") as h5:
+        assert np.array_equal(np.asarray(h5[f"renamed_{names[0]}"]["keypoints"]), kept[names[0]])
 
 
 def test_removed_images_leave_database_features_pairs_and_model(copy_of_first, run_cli):
