@@ -171,6 +171,22 @@ def test_the_report_says_when_the_lens_distortion_was_held(sara_run: Path):
     assert ">lens distortion</th><td>held while mapping" in sections.reconstruction(data)
 
 
+def test_the_report_keeps_the_runs_advice_and_the_two_view_points(sara_run: Path):
+    """The warnings given before matching (cameras from guessed focal lengths, SIFT starved) and an
+    update's counts are in an Advice section, absent when the run gave none; a model that needed the
+    points seen in two views says so in the Reconstruction section."""
+    from sara.report import sections
+
+    data = load_run(sara_run)
+    assert sections.advice(data) == "" and ">points</th>" not in sections.reconstruction(data)
+    data.run["stages"]["extract"]["cameras_guessed"] = [5, 5]
+    data.run["stages"]["update"] = {"num_added": 0, "num_removed": 0, "num_changed": 0, "num_renamed": 2}
+    data.run["stages"]["map"]["two_view_points"] = True
+    text = sections.advice(data)
+    assert "<h2>Advice</h2>" in text and "5 of the 5 cameras" in text and "2 renamed" in text
+    assert ">points</th><td>those seen in two views only" in sections.reconstruction(data)
+
+
 def test_the_report_says_how_a_contradicted_first_model_was_set_right(sara_run: Path):
     """Mended at its seam, or mapped again under other seeds: the Reconstruction section says which."""
     from sara.report import sections

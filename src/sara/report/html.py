@@ -11,9 +11,10 @@ force-directed layout when there is no model), edges coloured by role, rejected 
 5. histograms of overlap O, parallax P, RANSAC inliers and weight w with the scorer's thresholds;
 6. thumbnails of the weakest views and of selected and rejected pairs, captioned with the numbers
 that tell them apart; 7. time per stage; 8. the reconstruction; 9. the evaluation against ground
-truth (`metrics.json`); 10. the commands to run next (export the model, rebuild the page).
+truth (`metrics.json`); 10. the advice the run gave (low texture, guessed cameras, an update);
+11. the commands to run next (export the model, rebuild the page).
 
-`sara.report.sections` writes sections 1-5 and 7-10, `sara.report.thumbnails` section 6, and
+`sara.report.sections` writes sections 1-5 and 7-11, `sara.report.thumbnails` section 6, and
 `sara.report.svg` draws the figures.
 """
 
@@ -62,7 +63,8 @@ def render(data: RunData) -> str:
     figures = f"<div class=\"row\">{sections.view_graph(data)}{sections.top_down(data)}</div>"
     tables = f"<div class=\"row\">{sections.reconstruction(data)}{sections.evaluation(data)}</div>"
     parts = [sections.summary(data), figures, sections.pairs_against_exhaustive(data), sections.scores(data),
-             thumbnails_section(data, thumbs), sections.timing(data), tables, sections.next_steps(data)]
+             thumbnails_section(data, thumbs), sections.timing(data), tables, sections.advice(data),
+             sections.next_steps(data)]
     title = f"sara report: {data.out_dir.resolve().name}"
     body = "".join(s for s in parts if s)
     return (f"<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">"

@@ -1,7 +1,7 @@
 """The sections of `report.html`, each a function of the run's data that returns HTML ("" when the run
 lacks what the section shows): summary cards, the view graph, the top-down plot, pairs against
 exhaustive matching, the pre-matching scores, time per stage, the reconstruction, the evaluation
-against ground truth, and the commands to run next.
+against ground truth, the advice the run gave, and the commands to run next.
 """
 
 from __future__ import annotations
@@ -14,6 +14,7 @@ import numpy as np
 from .. import colmap
 from ..export import FORMATS
 from ..io.pairs import Pair
+from ..pipeline import advice as run_advice
 from ..pipeline.record import time_notes
 from . import SELECTED_ROLES, RunData, Scores
 from .markup import esc, fmt, section, table
@@ -229,6 +230,9 @@ def reconstruction(data: RunData) -> str:
     if data.stages.get("map", {}).get("distortion_held"):
         rows.append(("lens distortion", "held while mapping: with it refined, the first model held under half the "
                      "views (map.refine_distortion)"))
+    if data.stages.get("map", {}).get("two_view_points"):
+        rows.append(("points", "those seen in two views only triangulated too: without them no model could be "
+                     "built (map.two_view_points)"))
     left_out = [n for n in data.names if n not in set(m.names)]
     if left_out:
         shown = ", ".join(esc(n) for n in left_out[:20]) + (" ..." if len(left_out) > 20 else "")
@@ -269,6 +273,24 @@ def evaluation(data: RunData) -> str:
             rows.append((key, fmt(value)))
     return section("Evaluation against ground truth", table(rows), "From metrics.json (`sara run --gt` or "
                    "`sara evaluate`); angles in degrees, AUC as a fraction.")
+
+
+def advice(data: RunData) -> str:
+    """What the run said before matching (SIFT starved; cameras from guessed focal lengths) and what an
+    update of the folder redid: the console's warnings, kept with the run."""
+    extract = data.stages.get("extract", {})
+    backend = str(data.run.get("config", {}).get("extract", {}).get("backend", "sift"))
+    notes = [text for text in (run_advice.low_texture(extract, backend), run_advice.guessed_cameras(extract)) if text]
+    update = data.stages.get("update")
+    if isinstance(update, dict):
+        notes.append(f"An update of a finished run: {update.get('num_added', 0)} images added, "
+                     f"{update.get('num_removed', 0)} removed, {update.get('num_changed', 0)} changed, "
+                     f"{update.get('num_renamed', 0)} renamed; {update.get('num_extracted', 0)} extracted, "
+                     f"{update.get('num_pairs_matched', 0)} pairs matched, {update.get('num_pairs_kept', 0)} "
+                     "earlier pairs kept")
+    if not notes:
+        return ""
+    return section("Advice", "<ul>" + "".join(f"<li>{esc(text)}</li>" for text in notes) + "</ul>")
 
 
 def next_steps(data: RunData) -> str:
