@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import partial
@@ -40,9 +41,8 @@ def resolve_camera_mode(images: ImageSet, conf: ExtractConfig) -> str:
     photos of the same size from different phones must not share intrinsics."""
     if conf.camera_mode != "auto":
         if conf.camera_mode not in ("single", "per_image", "per_folder"):
-            raise ValueError(
-                f"unknown camera_mode {conf.camera_mode!r}; choose auto, single, per_image or per_folder"
-            )
+            raise ValueError(f"unknown camera_mode {conf.camera_mode!r}; choose auto, single, per_image or "
+                             "per_folder")
         return conf.camera_mode
     sizes = {images.sizes[n] for n in images.names}
     if len(sizes) > 1:
@@ -151,6 +151,8 @@ def run(conf: ExtractConfig, images: ImageSet, out_dir: Path, *, executor: Execu
     save_digests_()
     records.mark_started(out_dir, STAGE, key)
     camera_mode = resolve_camera_mode(images, conf)
+    odd = _other_sizes(images) if camera_mode == "single" else {}  # COLMAP would leave them out, unsaid
+    images = set_aside(images, odd)
     wants_focal = conf.estimate_focal and camera_mode == "single" and not conf.camera_params
     if hasattr(backend, "extract_to_database"):
         counts, failed, fundamentals = _extract_sift(backend, db_path, h5_path, images, camera_mode, wants_focal,
@@ -172,11 +174,19 @@ def run(conf: ExtractConfig, images: ImageSet, out_dir: Path, *, executor: Execu
     if camera_mode != "single":  # how many of the images' own cameras start from a guessed focal length
         priors = colmap.camera_priors(db_path)
         info["cameras_guessed"] = [sum(not known for known in priors.values()), len(priors)]
+    failed = {**odd, **failed}
     info.update(camera_mode=camera_mode, backend=conf.backend, features=h5_path.name,
                 skipped=failed, time_s=time.perf_counter() - tic,
                 settings=settings_of(conf), images=digests, usable_key=key_without(set(failed)))
     records.mark_done(out_dir, STAGE, key, info, outputs=recorded(db_path, h5_path))
     return h5_path
+
+
+def _other_sizes(images: ImageSet) -> dict[str, str]:
+    """Under one shared camera, the images of another size than most (name -> why)."""
+    (w, h), _ = Counter(images.sizes[n] for n in images.names).most_common(1)[0]
+    return {n: f"its size {images.sizes[n][0]}x{images.sizes[n][1]} is not the shared camera's {w}x{h} (--camera-mode "
+            "single: use per_image for images of several sizes)" for n in images.names if images.sizes[n] != (w, h)}
 
 
 def _extract_sift(backend: ColmapSift, db_path: Path, h5_path: Path, images: ImageSet, camera_mode: str,

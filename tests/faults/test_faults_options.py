@@ -210,3 +210,22 @@ def test_map_with_a_copy_of_the_images(finished_run, images, tmp_path, run_cli):
     for path in folder.iterdir():
         os.utime(path, (1, 1))
     assert_ok(run_cli("map", finished_run, "--images", folder, "-q"))
+
+
+def test_one_camera_asked_for_images_of_two_sizes(images, tmp_path, run_cli):
+    """`--camera-mode single` with an image of another size: COLMAP's extraction left it out with a line
+    in its own log only; now it is set aside with the reason, and the others are reconstructed."""
+    from PIL import Image
+
+    folder = tmp_path / "sizes"
+    folder.mkdir()
+    names = sorted(p.name for p in images.iterdir())
+    for name in names:
+        shutil.copyfile(images / name, folder / name)
+    small = Image.open(images / names[0])
+    small.resize((small.width // 2, small.height // 2)).save(folder / names[0])
+    result = run_cli("run", folder, tmp_path / "out", "-q", "--camera-mode", "single")
+    assert_ok(result)
+    skipped = json.loads((tmp_path / "out" / "run.json").read_text())["skipped_images"]
+    assert set(skipped) == {names[0]} and "is not the shared camera's" in skipped[names[0]]
+    assert registered(tmp_path / "out") == names[1:]
