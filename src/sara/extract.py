@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import logging
 import time
-from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import partial
@@ -21,8 +20,9 @@ from .execute import Beside, Executor, SerialExecutor, for_device, single_thread
 from .features import Keypoints, LocalFeatures, features_file_name, make_backend
 from .features.sift import ColmapSift, DatabaseToH5, not_extracted
 from .io import DamagedOutputError, OutputStateError, atomic_path, ensure_free_space, fingerprint, records
+from .io import images as image_files
 from .io.h5 import H5_ERRORS, Features, features_digest, has_features, write_features
-from .io.images import ImageSet, content_digests, exif_camera, load_image, save_digests, set_aside, to_full_resolution
+from .io.images import ImageSet, set_aside
 from .scoring import focal
 
 logger = logging.getLogger(__name__)
@@ -47,7 +47,7 @@ def resolve_camera_mode(images: ImageSet, conf: ExtractConfig) -> str:
     sizes = {images.sizes[n] for n in images.names}
     if len(sizes) > 1:
         return "per_image"
-    cameras = {exif_camera(images.root / n) for n in images.names}
+    cameras = {image_files.exif_camera(images.root / n) for n in images.names}
     return "single" if len(cameras) == 1 else "per_image"
 
 
@@ -80,7 +80,7 @@ def stage_key(images: ImageSet, conf: ExtractConfig, out_dir: Path, *, progress:
     found: list = []
 
     def digests() -> tuple[dict[str, str], dict[str, list] | None]:
-        found[:] = found or [content_digests(images, cache, progress=progress)]
+        found[:] = found or [image_files.content_digests(images, cache, progress=progress)]
         return found[0]
 
     def key_without(aside: set[str]) -> str:
@@ -89,7 +89,7 @@ def stage_key(images: ImageSet, conf: ExtractConfig, out_dir: Path, *, progress:
     record = records.read_record(out_dir, STAGE)
     if record is not None and record.get("key") == fingerprint({"images": images.fingerprint_data(), "conf": settings}):
         return record["key"], None, lambda: None, key_without
-    return key_without(set()), digests()[0], lambda: save_digests(cache, digests()[1]), key_without
+    return key_without(set()), digests()[0], lambda: image_files.save_digests(cache, digests()[1]), key_without
 
 
 def key_as_recorded(record: dict | None, key: str, key_without: Callable[[set[str]], str]) -> str:
@@ -151,7 +151,9 @@ def run(conf: ExtractConfig, images: ImageSet, out_dir: Path, *, executor: Execu
     save_digests_()
     records.mark_started(out_dir, STAGE, key)
     camera_mode = resolve_camera_mode(images, conf)
-    odd = _other_sizes(images) if camera_mode == "single" else {}  # COLMAP would leave them out, unsaid
+    # where one camera's intrinsics hold for every image, those of another size cannot be theirs
+    one = "--camera-mode single" if camera_mode == "single" else "extract.camera_params" if conf.camera_params else ""
+    odd = image_files.other_sizes(images, one) if one else {}
     images = set_aside(images, odd)
     wants_focal = conf.estimate_focal and camera_mode == "single" and not conf.camera_params
     if hasattr(backend, "extract_to_database"):
@@ -180,13 +182,6 @@ def run(conf: ExtractConfig, images: ImageSet, out_dir: Path, *, executor: Execu
                 settings=settings_of(conf), images=digests, usable_key=key_without(set(failed)))
     records.mark_done(out_dir, STAGE, key, info, outputs=recorded(db_path, h5_path))
     return h5_path
-
-
-def _other_sizes(images: ImageSet) -> dict[str, str]:
-    """Under one shared camera, the images of another size than most (name -> why)."""
-    (w, h), _ = Counter(images.sizes[n] for n in images.names).most_common(1)[0]
-    return {n: f"its size {images.sizes[n][0]}x{images.sizes[n][1]} is not the shared camera's {w}x{h} (--camera-mode "
-            "single: use per_image for images of several sizes)" for n in images.names if images.sizes[n] != (w, h)}
 
 
 def _extract_sift(backend: ColmapSift, db_path: Path, h5_path: Path, images: ImageSet, camera_mode: str,
@@ -372,7 +367,7 @@ def _extract_images(job: _ExtractJob) -> list[Keypoints | str]:
     out: list[Keypoints | str] = []
     for name in job.names:
         try:
-            pixels, factors = load_image(Path(job.root) / name, job.conf.max_image_size)
+            pixels, factors = image_files.load_image(Path(job.root) / name, job.conf.max_image_size)
         except FileNotFoundError:
             out.append("the file disappeared during extraction")
             continue
@@ -380,8 +375,8 @@ def _extract_images(job: _ExtractJob) -> list[Keypoints | str]:
             out.append(f"could not be decoded during extraction ({exc})")
             continue
         found = _BACKENDS[key].extract(pixels)
-        out.append(Keypoints(xy=to_full_resolution(found.xy, factors), scores=np.asarray(found.scores, np.float32),
-                             descriptors=np.asarray(found.descriptors)))
+        out.append(Keypoints(xy=image_files.to_full_resolution(found.xy, factors),
+                             scores=np.asarray(found.scores, np.float32), descriptors=np.asarray(found.descriptors)))
     return out
 
 

@@ -212,9 +212,12 @@ def test_map_with_a_copy_of_the_images(finished_run, images, tmp_path, run_cli):
     assert_ok(run_cli("map", finished_run, "--images", folder, "-q"))
 
 
-def test_one_camera_asked_for_images_of_two_sizes(images, tmp_path, run_cli):
-    """`--camera-mode single` with an image of another size: COLMAP's extraction left it out with a line
-    in its own log only; now it is set aside with the reason, and the others are reconstructed."""
+@pytest.mark.parametrize("one_camera", [("--camera-mode", "single"), ("-s", "extract.camera_params=800,400,300,0")])
+def test_one_camera_asked_for_images_of_two_sizes(one_camera, images, tmp_path, run_cli):
+    """One camera for images of two sizes (`--camera-mode single`: COLMAP's extraction left the odd
+    one out with a line in its own log only; `extract.camera_params`: it got intrinsics of another
+    size, its principal point in a corner): the image of the rarer size is set aside with the reason,
+    and the others are reconstructed."""
     from PIL import Image
 
     folder = tmp_path / "sizes"
@@ -224,8 +227,8 @@ def test_one_camera_asked_for_images_of_two_sizes(images, tmp_path, run_cli):
         shutil.copyfile(images / name, folder / name)
     small = Image.open(images / names[0])
     small.resize((small.width // 2, small.height // 2)).save(folder / names[0])
-    result = run_cli("run", folder, tmp_path / "out", "-q", "--camera-mode", "single")
+    result = run_cli("run", folder, tmp_path / "out", "-q", *one_camera)
     assert_ok(result)
     skipped = json.loads((tmp_path / "out" / "run.json").read_text())["skipped_images"]
-    assert set(skipped) == {names[0]} and "is not the shared camera's" in skipped[names[0]]
+    assert set(skipped) == {names[0]} and "is not the one camera's" in skipped[names[0]]
     assert registered(tmp_path / "out") == names[1:]

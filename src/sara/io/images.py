@@ -6,6 +6,7 @@ import hashlib
 import logging
 import os
 import unicodedata
+from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -308,6 +309,13 @@ def set_aside(images: ImageSet, reasons: dict[str, str], *, warn: bool = True) -
                     sizes={n: s for n, s in images.sizes.items() if n not in reasons}, skipped=skipped,
                     orientation={n: o for n, o in images.orientation.items() if n not in reasons},
                     needs_copy=images.needs_copy - set(reasons))
+
+
+def other_sizes(images: ImageSet, given: str) -> dict[str, str]:
+    """Under one camera (`given` by that setting), the images of another size than most (name -> why)."""
+    (w, h), _ = Counter(images.sizes[n] for n in images.names).most_common(1)[0]
+    return {n: f"its size {images.sizes[n][0]}x{images.sizes[n][1]} is not the one camera's {w}x{h} ({given}: one "
+            "camera for images of one size)" for n in images.names if images.sizes[n] != (w, h)}
 
 
 def scan_images(root: Path, *, recursive: bool = False, progress: bool = True,
