@@ -8,8 +8,8 @@ import numpy as np
 from PIL import Image
 
 from sara.config import ExtractConfig
-from sara.extract import exif_camera, resolve_camera_mode
-from sara.io.images import scan_images
+from sara.extract import resolve_camera_mode
+from sara.io.images import exif_camera, scan_images
 
 
 def _photo(path: Path, size=(64, 48), make: str | None = None, model: str | None = None,
