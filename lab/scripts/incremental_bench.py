@@ -1,10 +1,11 @@
 """Incremental runs against from-scratch runs of the final folder (issue 30), one run at a time.
 
-    python lab/scripts/incremental_bench.py ../shared/data WORK [--scenes add,remove,retouch]
+    python lab/scripts/incremental_bench.py ../shared/data WORK [--cases add,remove,retouch,rename]
 
 For each case: a first run of the starting folder (links to the scene's images), the change, the
 same command again (the update), then a run from scratch of the final folder; every run with
---gt. Writes WORK/incremental.json (times, the update's counts, registered views, AUC).
+--gt (for `rename`, every file renamed `r_NAME`, the truth under the new names after the change).
+Writes WORK/incremental.json (times, the update's counts, registered views, AUC).
 """
 
 from __future__ import annotations
@@ -55,7 +56,7 @@ def _retouch(src: Path, dst: Path) -> None:
 
 def case(data: Path, work: Path, name: str) -> dict:
     scene, change = {"add": ("strecha-Herz-Jesus-P25", "add"), "remove": ("strecha-castle-P30", "remove"),
-                     "retouch": ("strecha-fountain-P11", "retouch")}[name]
+                     "retouch": ("strecha-fountain-P11", "retouch"), "rename": ("strecha-castle-P30", "rename")}[name]
     src, gt = data / scene / "images", data / scene / "gt"
     names = sorted(os.listdir(src))
     images, out, scratch = work / f"{name}-images", work / f"{name}-out", work / f"{name}-scratch"
@@ -70,6 +71,12 @@ def case(data: Path, work: Path, name: str) -> dict:
     elif change == "remove":
         for n in names[-5:]:
             (images / n).unlink()
+    elif change == "rename":
+        from sara.colmap.model import write_model
+
+        for n in names:
+            (images / n).rename(images / f"r_{n}")
+        gt = write_model(gt, work / f"{name}-gt", rename={n: f"r_{n}" for n in names}, text=True)
     else:
         target = names[len(names) // 2]
         (images / target).unlink()
