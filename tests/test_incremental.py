@@ -219,7 +219,9 @@ def test_renamed_images_keep_their_features_matches_and_poses(copy_of_first, run
     with h5py.File(out / "features-sift.h5", "r") as h5:
         for old, new in renamed.items():
             np.testing.assert_array_equal(h5[new]["keypoints"][()], keypoints[old])
-    assert state["update"]["num_pairs_matched"] < matched_before  # the earlier matches were kept
+    # only names changed: the earlier pairs stand, none selected, matched or dropped, no round again
+    assert state["update"]["num_pairs_matched"] == 0 and state["update"]["num_pairs_dropped"] == 0
+    assert len(state["pairs"]) == state["update"]["num_pairs_kept"] > 0 and matched_before > 0
     for name in sorted(os.listdir(images)):  # the whole folder renamed once more
         (images / name).rename(images / f"x_{name}")
     assert_ok(run_cli("run", images, out, "-q"))

@@ -362,6 +362,12 @@ def pending(out_dir: Path, extract_key: str) -> dict[str, Any] | None:
     return current
 
 
+def renamed_only(update: dict[str, Any] | None) -> bool:
+    """Whether a pending update only renamed images (none added, removed or changed)."""
+    return bool(update and update.get("num_renamed")) and not any(
+        update.get(k) for k in ("num_added", "num_removed", "num_changed"))
+
+
 def kept_pairs(out_dir: Path, update: dict[str, Any]) -> tuple[list[Pair], list[str], Path | None]:
     """(the pairs of the run between images kept unchanged, the images that need pairs, the run's
     scores file or None) of a pending update."""

@@ -68,6 +68,8 @@ class Extension:
     kept_pairs: list[Pair]
     new_names: list[str]
     scores_path: Path | None = None
+    #: only names changed since (no image added, removed or changed): the earlier selection stands
+    renamed_only: bool = False
 
 
 @dataclass

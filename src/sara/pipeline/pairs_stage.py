@@ -161,7 +161,8 @@ def _extension(source: PairSource, out_dir: Path) -> Extension | None:
     if source.extend is None or update is None:
         return None
     kept, new_names, scores_path = incremental.kept_pairs(out_dir, update)
-    return Extension(kept, new_names, scores_path) if kept or scores_path is not None else None
+    renamed = incremental.renamed_only(update)
+    return Extension(kept, new_names, scores_path, renamed) if kept or scores_path is not None else None
 
 
 def _seed_caches(source: PairSource, folders: tuple[Path, ...], staging: Path) -> None:
