@@ -1,6 +1,7 @@
 """Rotations as numpy arrays: rotation vectors (axis times angle) and matrices, and the angle
 between two rotations. A leaf (numpy only): the pair scorer and the cycle check use it on every
-SARA run, where importing scipy's rotations took about 0.2 s of a few seconds on small scenes.
+SARA run, where importing scipy's rotations took 75-89 ms (three measurements, numpy and scipy's
+sparse module already loaded) of a few seconds on small scenes.
 """
 
 from __future__ import annotations

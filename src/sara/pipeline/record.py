@@ -101,6 +101,15 @@ def _tree_note(pairs_info: dict[str, Any]) -> str:
     return f"; spanning tree by {rank} ({view}{how})"
 
 
+def update_summary(update: dict[str, Any]) -> str:
+    """What an incremental update changed and redid, in one line (`stages.update` of run.json)."""
+    return (f"{update.get('num_added', 0)} images added, {update.get('num_removed', 0)} removed, "
+            f"{update.get('num_changed', 0)} changed, {update.get('num_renamed', 0)} renamed since the previous "
+            f"run; {update.get('num_extracted', 0)} extracted, {update.get('num_pairs_scored', 0)} pairs scored, "
+            f"{update.get('num_pairs_matched', 0)} pairs matched ({update.get('num_pairs_kept', 0)} earlier pairs "
+            f"kept, {update.get('num_pairs_dropped', 0)} dropped)")
+
+
 def render_report(report: RunReport) -> str:
     """A short human-readable summary of a run (Markdown)."""
     s = report.stages
@@ -124,12 +133,7 @@ def render_report(report: RunReport) -> str:
              f"(from `{report.images_root}`)", "", markdown_table(["stage", "time (s)", "result"], rows)]
     update = s.get("update")
     if update:
-        lines += ["", f"Update: {update['num_added']} images added, {update['num_removed']} removed, "
-                      f"{update['num_changed']} changed, {update.get('num_renamed', 0)} renamed since the previous "
-                      f"run; {update['num_extracted']} extracted, "
-                      f"{update.get('num_pairs_scored', 0)} pairs scored, {update.get('num_pairs_matched', 0)} "
-                      f"pairs matched ({update.get('num_pairs_kept', 0)} earlier pairs kept, "
-                      f"{update.get('num_pairs_dropped', 0)} dropped)"]
+        lines += ["", f"Update: {update_summary(update)}"]
     notes = time_notes(s)
     if notes:
         lines += [""] + [f"- {note}" for note in notes]

@@ -92,7 +92,7 @@ def _run_stages(conf: PipelineConfig, images: ImageSet, images_root: Path, out_d
         return report
     extract_key = (records.read_record(out_dir, extract.STAGE) or {}).get("key", "")
     reserve = incremental.earlier_matches(out_dir, extract_key)
-    source_rounds = _rounds_run(conf, images, features, out_dir, executor, progress, reserve)
+    source_rounds = _rounds_run(conf, images, features, out_dir, executor, progress, extract_key, reserve)
     work = match_pairs(conf, pairs_path, features, out_dir, executor=executor, progress=progress, beside=True,
                        overwrite=overwrite, reserve=reserve)
     staged = None
@@ -118,11 +118,10 @@ def _run_stages(conf: PipelineConfig, images: ImageSet, images_root: Path, out_d
 
 
 def _rounds_run(conf: PipelineConfig, images: ImageSet, features: Path, out_dir: Path, executor: Executor,
-                progress: bool, reserve: Path | None = None) -> rounds.RoundsRun | None:
+                progress: bool, extract_key: str, reserve: Path | None = None) -> rounds.RoundsRun | None:
     """The pair source's rounds around mapping, ready to run (None when it has none, or when an update
     only renamed images: the earlier rounds' pairs stand, and the model they made is continued)."""
     source = get_source(conf.pairs.method) if pairs_stage.pair_source_file(conf.pairs.method) is None else None
-    extract_key = (records.read_record(out_dir, extract.STAGE) or {}).get("key", "")
     if source is None or source.rounds is None or incremental.renamed_only(incremental.pending(out_dir, extract_key)):
         return None
     ctx = pairs_stage.pair_context(conf, images, features, out_dir, executor=executor, progress=progress)

@@ -15,7 +15,7 @@ from .. import colmap
 from ..export import FORMATS
 from ..io.pairs import Pair
 from ..pipeline import advice as run_advice
-from ..pipeline.record import time_notes
+from ..pipeline.record import time_notes, update_summary
 from . import SELECTED_ROLES, RunData, Scores
 from .markup import esc, fmt, section, table
 from .svg import histogram_svg, node_positions, role_order, role_swatch, top_down_svg, view_graph_svg
@@ -283,11 +283,7 @@ def advice(data: RunData) -> str:
     notes = [text for text in (run_advice.low_texture(extract, backend), run_advice.guessed_cameras(extract)) if text]
     update = data.stages.get("update")
     if isinstance(update, dict):
-        notes.append(f"An update of a finished run: {update.get('num_added', 0)} images added, "
-                     f"{update.get('num_removed', 0)} removed, {update.get('num_changed', 0)} changed, "
-                     f"{update.get('num_renamed', 0)} renamed; {update.get('num_extracted', 0)} extracted, "
-                     f"{update.get('num_pairs_matched', 0)} pairs matched, {update.get('num_pairs_kept', 0)} "
-                     "earlier pairs kept")
+        notes.append(f"An update of a finished run: {update_summary(update)}")
     if not notes:
         return ""
     return section("Advice", "<ul>" + "".join(f"<li>{esc(text)}</li>" for text in notes) + "</ul>")
