@@ -165,6 +165,41 @@ def test_a_folder_of_videos_gives_the_frames_of_each(tmp_path):
     assert video.find_videos(folder) == []  # a folder with images is a folder of images
 
 
+@pytest.mark.parametrize("codec, turned", [
+    (["-c:v", "libx264", "-pix_fmt", "yuv420p", "-bf", "3", "out.mp4"], False),  # most phones and cameras
+    (["-c:v", "libx265", "-pix_fmt", "yuv420p10le", "-tag:v", "hvc1", "-x265-params", "log-level=error",
+      "out.mov"], True),  # an iPhone's 10-bit HEVC, filmed upright: the file states a rotation
+    (["-c:v", "libvpx-vp9", "-pix_fmt", "yuv420p", "out.webm"], False),
+])
+def test_phone_codecs_decode_and_a_stated_rotation_is_applied(tmp_path, codec, turned):
+    """Videos as phones write them (H.264 with B-frames, 10-bit HEVC in QuickTime, VP9), encoded by
+    the FFmpeg that imageio-ffmpeg carries (OpenCV's wheel encodes none of them): every frame is
+    read in both passes, in order, and the rotation in an upright clip's file is applied."""
+    import subprocess
+
+    imageio_ffmpeg = pytest.importorskip("imageio_ffmpeg")
+    ffmpeg = imageio_ffmpeg.get_ffmpeg_exe()
+    frames = [cv2.resize(f, (192, 128), interpolation=cv2.INTER_NEAREST) for f in noise_frames(12, {5})]
+    source = write_video(tmp_path / "source.avi", frames)
+    plain = tmp_path / ("plain" + Path(codec[-1]).suffix)
+    subprocess.run([ffmpeg, "-hide_banner", "-loglevel", "error", "-i", str(source), *codec[:-1], str(plain)],
+                   check=True)
+    clip = plain
+    if turned:  # as a phone held upright writes it: the pixels as recorded, the rotation in the file
+        clip = tmp_path / ("clip" + plain.suffix)
+        subprocess.run([ffmpeg, "-hide_banner", "-loglevel", "error", "-display_rotation", "90", "-i", str(plain),
+                        "-c", "copy", str(clip)], check=True)
+    entry = video.decode_video(clip, tmp_path / "frames", FrameSettings(frames=4), progress=False)
+    assert entry["num_frames"] == 12 and len(entry["frames"]) == 4
+    assert 5 not in [f["index"] for f in entry["frames"]]  # the blurred frame passed over
+    picked = cv2.imread(str(tmp_path / "frames" / entry["frames"][0]["name"]))
+    assert picked.shape[:2] == ((192, 128) if turned else (128, 192))
+    expected = frames[entry["frames"][0]["index"]]
+    if turned:
+        expected = np.rot90(expected)  # a rotation of 90 degrees stated in the file: counterclockwise
+    assert np.abs(picked.astype(int) - expected.astype(int)).mean() < 12  # the same picture, lossy
+
+
 def test_frames_far_apart_by_default_are_said(tmp_path, caplog):
     """160 frames at 1 fps: the default 150 frames are a second apart or more: the run says how to pick
     closer ones; with the count given, or frames close enough, it says nothing."""
@@ -246,6 +281,33 @@ def test_sara_run_on_a_video_resumes_and_refuses_other_settings(video_scene, tmp
     changed = run_cli("run", tmp_path / "clip.avi", out, "--frames", "5")
     assert changed.code == 3 and "clip.avi changed" in changed.error_lines[0], changed.err
     assert sorted(p.name for p in (out / "images").iterdir()) == names  # nothing mixed in
+
+
+def test_clips_of_two_sizes_get_a_camera_each_and_one_model(video_scene, tmp_path, run_cli):
+    """A folder of two clips, the second filmed with the phone upright (its frames turned): the
+    frames of each clip share one camera. Before, images of two sizes got a camera each, and two
+    phone clips a camera per frame."""
+    import sqlite3
+
+    clip, _ = video_scene
+    with video.open_video(clip) as capture:
+        frames = [frame for ok, frame in iter(capture.read, (False, None)) if ok]
+    clips = tmp_path / "clips"
+    clips.mkdir()
+    write_video(clips / "a.avi", frames[:4])
+    write_video(clips / "b.avi", [np.ascontiguousarray(np.rot90(f, k=-1)) for f in frames[2:]])
+    out = tmp_path / "out"
+    result = run_cli("run", clips, out, "--frames", "4", "-q", "--workers", "1")
+    assert result.code == 0, result.err
+    record = json.loads((out / "run.json").read_text())
+    assert record["stages"]["extract"]["camera_mode"] == "per_video"
+    with sqlite3.connect(out / "database.db") as con:
+        rows = con.execute("SELECT i.name, c.width, c.height, c.camera_id FROM images i JOIN cameras c "
+                           "USING (camera_id)").fetchall()
+    cameras = {(name[0], width, height, camera) for name, width, height, camera in rows}
+    assert len(rows) == 8 and len({c[3] for c in cameras}) == 2
+    assert {c[:3] for c in cameras} == {("a", 800, 600), ("b", 600, 800)}
+    assert record["stages"]["map"]["num_registered"] == 8, record["stages"]["map"]
 
 
 @pytest.mark.parametrize("content, message", [

@@ -35,20 +35,32 @@ class OutputMismatchError(OutputStateError, ValueError):
     """An output folder holds results made from other inputs or settings."""
 
 
-def resolve_camera_mode(images: ImageSet, conf: ExtractConfig) -> str:
+def resolve_camera_mode(images: ImageSet, conf: ExtractConfig, groups: dict[str, str] | None = None) -> str:
     """`auto`: one shared camera when every image has the same size and the same EXIF camera (make,
-    model and focal length, or no EXIF at all, as frames of one video), else one camera per image:
-    photos of the same size from different phones must not share intrinsics."""
+    model and focal length, or no EXIF at all, as frames of one video); one camera per video
+    (`per_video`) for frames of several videos (`groups`: frame -> its video), which may come from
+    other phones or the same phone turned; else one camera per image: photos of the same size from
+    different phones must not share intrinsics."""
     if conf.camera_mode != "auto":
         if conf.camera_mode not in ("single", "per_image", "per_folder"):
             raise ValueError(f"unknown camera_mode {conf.camera_mode!r}; choose auto, single, per_image or "
                              "per_folder")
         return conf.camera_mode
+    if groups and len({groups.get(n) for n in images.names}) > 1:
+        return "per_video"
     sizes = {images.sizes[n] for n in images.names}
     if len(sizes) > 1:
         return "per_image"
     cameras = {image_files.exif_camera(images.root / n) for n in images.names}
     return "single" if len(cameras) == 1 else "per_image"
+
+
+def _share_per_video(db_path: Path, images: ImageSet, groups: dict[str, str]) -> None:
+    """One camera for the frames of each video (of each size, should a video change size)."""
+    by_video: dict[tuple, list[str]] = {}
+    for name in images.names:
+        by_video.setdefault((groups.get(name, name), images.sizes[name]), []).append(name)
+    colmap.share_cameras(db_path, list(by_video.values()))
 
 
 #: settings added after outputs existed, with their defaults: at that default they stay out of the
@@ -117,7 +129,7 @@ def _check_existing_database(db_path: Path, images: ImageSet) -> bool:
 
 
 def run(conf: ExtractConfig, images: ImageSet, out_dir: Path, *, executor: Executor | None = None,
-        overwrite: bool = False, progress: bool = True) -> Path:
+        overwrite: bool = False, progress: bool = True, camera_groups: dict[str, str] | None = None) -> Path:
     """Local features of every image; returns the path of `features-<backend>.h5`.
 
     The COLMAP database receives the images, their cameras and the keypoints. Resumes an
@@ -125,7 +137,8 @@ def run(conf: ExtractConfig, images: ImageSet, out_dir: Path, *, executor: Execu
     decoder cannot read (COLMAP's reader for SIFT: a format it does not know under an image
     extension, a file gone since the scan) are set aside, each with one warning, and listed in the
     stage record (`usable` applies that list on every later run). A finished stage is trusted only
-    while the features file and the database still hold what it wrote.
+    while the features file and the database still hold what it wrote. `camera_groups` (frame ->
+    the video it came from) gives the frames of each video one camera (`resolve_camera_mode`).
     """
     out_dir = Path(out_dir)
     db_path, h5_path = out_dir / DB_NAME, out_dir / features_file_name(conf)
@@ -150,14 +163,15 @@ def run(conf: ExtractConfig, images: ImageSet, out_dir: Path, *, executor: Execu
         _partial(h5_path).unlink(missing_ok=True)
     save_digests_()
     records.mark_started(out_dir, STAGE, key)
-    camera_mode = resolve_camera_mode(images, conf)
+    camera_mode = resolve_camera_mode(images, conf, camera_groups)
+    importing = "per_image" if camera_mode == "per_video" else camera_mode  # then shared per video below
     # where one camera's intrinsics hold for every image, those of another size cannot be theirs
     one = "--camera-mode single" if camera_mode == "single" else "extract.camera_params" if conf.camera_params else ""
     odd = image_files.other_sizes(images, one) if one else {}
     images = set_aside(images, odd)
     wants_focal = conf.estimate_focal and camera_mode == "single" and not conf.camera_params
     if hasattr(backend, "extract_to_database"):
-        counts, failed, fundamentals = _extract_sift(backend, db_path, h5_path, images, camera_mode, wants_focal,
+        counts, failed, fundamentals = _extract_sift(backend, db_path, h5_path, images, importing, wants_focal,
                                                      progress)
         set_aside(images, failed)  # one warning each
         estimate_with = None if fundamentals is None else partial(focal.estimate, fundamentals)
@@ -165,15 +179,17 @@ def run(conf: ExtractConfig, images: ImageSet, out_dir: Path, *, executor: Execu
         if db_path.exists() and not _check_existing_database(db_path, images):
             colmap.remove_database(db_path)  # images were being imported when the run stopped: importing is cheap
         if not db_path.exists():
-            _new_database(db_path, images, conf, camera_mode)
+            _new_database(db_path, images, conf, importing)
         counts, failed = extract_to_h5(backend, conf, images, h5_path, executor, progress)
         kept = set_aside(images, failed).names
         import_keypoints(db_path, h5_path, kept)
         estimate_with = partial(focal.estimate_from_features, h5_path, kept) if wants_focal else None
+    if camera_mode == "per_video":
+        _share_per_video(db_path, images, camera_groups or {})
     info = summarize(counts)
     if estimate_with is not None:
-        info["focal"] = _check_focal(db_path, estimate_with)
-    if camera_mode != "single":  # how many of the images' own cameras start from a guessed focal length
+        info["focal"] = focal.check_prior(db_path, estimate_with)
+    if camera_mode == "per_image":  # how many of the images' own cameras start from a guessed focal length
         priors = colmap.camera_priors(db_path)
         info["cameras_guessed"] = [sum(not known for known in priors.values()), len(priors)]
     failed = {**odd, **failed}
@@ -241,33 +257,6 @@ def _resumable_database(db_path: Path, images: ImageSet, camera_mode: str) -> in
         colmap.remove_database(db_path)
         return None
     return next(iter(cameras)) if camera_mode == "single" and len(cameras) == 1 else None
-
-
-def _check_focal(db_path: Path, estimate_with: Callable[[int, int, float], focal.FocalEstimate | None]) -> dict | None:
-    """Replace COLMAP's focal prior of the shared camera by an estimate from the images where that
-    is clearly longer (`sara.scoring.focal`; `estimate_with(width, height, prior)`); what was found
-    goes into the stage record."""
-    camera = colmap.shared_camera(db_path)
-    if camera is None or camera.has_prior_focal_length:  # EXIF gave the focal length
-        return None
-    prior = float(camera.mean_focal_length())
-    found = estimate_with(camera.width, camera.height, prior)
-    if found is None:
-        logger.info("focal length: too few pairs of neighbouring images that tell it (a camera moving straight "
-                    "ahead tells none) to check COLMAP's prior (%.0f px)", prior)
-        return {"prior_px": prior, "estimated_px": None, "applied": False}
-    applied = found.replaces(prior)
-    if applied:
-        colmap.set_focal_length(db_path, camera.camera_id, found.focal_px)
-        logger.warning("focal length: the images say %.0f px (%.1f-degree field of view), %.2fx COLMAP's prior "
-                       "of %.0f px; starting from %.0f px (give extract.camera_params if you know it)",
-                       found.focal_px, focal.field_of_view_deg(found.focal_px, camera.width, camera.height),
-                       found.focal_px / prior, prior, found.focal_px)
-    else:
-        logger.info("focal length: estimate %.0f px, prior %.0f px kept", found.focal_px, prior)
-    return {"prior_px": prior, "estimated_px": found.focal_px, "applied": applied, "num_pairs": found.num_pairs,
-            "cost": found.cost, "cost_at_prior": found.cost_at_prior, "sharpness": found.sharpness,
-            "agreement": found.agreement, "sound": found.sound}
 
 
 def usable(images: ImageSet, out_dir: Path, *, warn: bool = False) -> ImageSet:

@@ -347,6 +347,15 @@ def read_record(out_dir: Path) -> dict[str, Any] | None:
     return record if isinstance(record, dict) and record.get("version") == RECORD_VERSION else None
 
 
+def camera_groups(out_dir: Path, images_root: Path) -> dict[str, str]:
+    """Frame name -> the video it was picked from, where `images_root` is the frames folder of a
+    video run (`sara run VIDEO OUT`); empty for any other folder of images."""
+    record = read_record(out_dir)
+    if not record or not record.get("complete") or Path(images_root).resolve() != (Path(out_dir) / "images").resolve():
+        return {}
+    return {frame["name"]: entry["name"] for entry in record.get("videos", []) for frame in entry.get("frames", [])}
+
+
 def _difference(record: dict[str, Any], identity: list[dict[str, Any]], settings: FrameSettings,
                 folder: Path) -> str:
     """What differs between the frames of `folder` and what this run asks for, in one clause."""

@@ -46,7 +46,7 @@ from .database_queries import (
     verified_graph,
     verified_inliers,
 )
-from .edit import delete_images, prune_model
+from .edit import delete_images, prune_model, share_cameras
 from .geometry import (
     CameraInfo,
     colmap_to_hloc_keypoints,
@@ -132,6 +132,7 @@ __all__ = [
     "replace_database",
     "send_log_to",
     "set_focal_length",
+    "share_cameras",
     "set_seed",
     "shared_camera",
     "sift_of_image",

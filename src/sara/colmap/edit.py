@@ -1,5 +1,6 @@
 """Taking images out of a database and out of a model, for an incremental update of an output
-folder (images removed from the collection, or changed and extracted again).
+folder (images removed from the collection, or changed and extracted again); images made to share
+one camera.
 
 COLMAP's database tables have no cascade for matches (they are keyed by pair id), and pycolmap's
 `Database` has no call that deletes an image, so the rows go through SQLite in one transaction:
@@ -58,6 +59,39 @@ def _delete_pairs_of(con: sqlite3.Connection, image_ids: set[int]) -> None:
             if first in image_ids or second in image_ids:
                 doomed.append((int(pair_id),))
         con.executemany(f"DELETE FROM {table} WHERE pair_id = ?", doomed)
+
+
+def share_cameras(db_path: Path, groups: list[list[str]]) -> int:
+    """Give each group of images (names) the camera of its first image in the database, as COLMAP's
+    import gives one camera to a folder: the images join that camera's rig, and the cameras and rigs
+    no image uses any more are deleted. The images of a group must have cameras of the same size
+    and prior. Idempotent; returns the number of images that changed camera."""
+    con = sqlite3.connect(str(db_path))
+    try:
+        with con:  # one transaction: all or nothing
+            rows = {n: (int(i), int(c)) for i, n, c in con.execute("SELECT image_id, name, camera_id FROM images")}
+            changed = 0
+            for names in groups:
+                members = sorted(rows[n] for n in names if n in rows)
+                if len(members) < 2:
+                    continue
+                keep = members[0][1]
+                rig = con.execute("SELECT rig_id FROM rigs WHERE ref_sensor_id = ? AND ref_sensor_type = ?",
+                                  (keep, _CAMERA_SENSOR)).fetchone()
+                for image_id, camera_id in members[1:]:
+                    if camera_id == keep:
+                        continue
+                    con.execute("UPDATE images SET camera_id = ? WHERE image_id = ?", (keep, image_id))
+                    con.execute("UPDATE frame_data SET sensor_id = ? WHERE data_id = ? AND sensor_type = ?",
+                                (keep, image_id, _CAMERA_SENSOR))
+                    if rig is not None:
+                        con.execute("UPDATE frames SET rig_id = ? WHERE frame_id IN (SELECT frame_id FROM frame_data "
+                                    "WHERE data_id = ? AND sensor_type = ?)", (rig[0], image_id, _CAMERA_SENSOR))
+                    _delete_unused_camera(con, camera_id)
+                    changed += 1
+            return changed
+    finally:
+        con.close()
 
 
 def _delete_unused_camera(con: sqlite3.Connection, camera_id: int) -> None:

@@ -10,7 +10,7 @@ import logging
 from pathlib import Path
 from typing import Any
 
-from .. import colmap, extract, incremental, mapping, match, weights
+from .. import colmap, extract, incremental, mapping, match, video, weights
 from ..config import PipelineConfig
 from ..execute import Executor, make_executor
 from ..features import BACKENDS as FEATURE_BACKENDS
@@ -71,7 +71,8 @@ def _run_stages(conf: PipelineConfig, images: ImageSet, images_root: Path, out_d
         incremental.discard(out_dir)
     else:  # images added, removed or changed since the last run: only they are extracted
         incremental.update_features(conf.extract, images, out_dir, executor=executor, progress=progress)
-    features = extract.run(conf.extract, images, out_dir, executor=executor, overwrite=overwrite, progress=progress)
+    features = extract.run(conf.extract, images, out_dir, executor=executor, overwrite=overwrite, progress=progress,
+                           camera_groups=video.camera_groups(out_dir, images_root))
     images = extract.usable(images, out_dir)
     report = RunReport(out_dir, images_root, conf.to_dict(), skipped_images=images.skipped)
     report.stages["images"] = {"num_images": len(images.names), "num_skipped": len(images.skipped)}

@@ -27,6 +27,7 @@ what kind of spanning tree the selection builds (`sara.pairs.sara.field_of_view`
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable, Container
 from dataclasses import dataclass
 from pathlib import Path
@@ -37,6 +38,8 @@ from threadpoolctl import threadpool_limits
 from .. import colmap
 from ..descriptors import mutual_nearest_neighbours
 from ..io.h5 import FeatureCache, Features
+
+logger = logging.getLogger(__name__)
 
 #: focal lengths tried, as multiples of the larger image side
 GRID = np.geomspace(0.25, 8.0, 61)
@@ -200,3 +203,30 @@ def estimate_from_features(features_path: Path, names: list[str], width: int, he
     with FeatureCache(features_path, top_k=NUM_KEYPOINTS, capacity=8) as cache:
         fundamentals = NearbyFundamentals(names, seed=seed).fundamentals(names, cache.get)
     return estimate(fundamentals, width, height, prior_px)
+
+
+def check_prior(db_path: Path, estimate_with: Callable[[int, int, float], FocalEstimate | None]) -> dict | None:
+    """Replace COLMAP's focal prior of the shared camera by an estimate from the images where that
+    is clearly longer (`estimate_with(width, height, prior)`: `estimate` or `estimate_from_features`);
+    what was found goes into the extract stage's record."""
+    camera = colmap.shared_camera(db_path)
+    if camera is None or camera.has_prior_focal_length:  # EXIF gave the focal length
+        return None
+    prior = float(camera.mean_focal_length())
+    found = estimate_with(camera.width, camera.height, prior)
+    if found is None:
+        logger.info("focal length: too few pairs of neighbouring images that tell it (a camera moving straight "
+                    "ahead tells none) to check COLMAP's prior (%.0f px)", prior)
+        return {"prior_px": prior, "estimated_px": None, "applied": False}
+    applied = found.replaces(prior)
+    if applied:
+        colmap.set_focal_length(db_path, camera.camera_id, found.focal_px)
+        logger.warning("focal length: the images say %.0f px (%.1f-degree field of view), %.2fx COLMAP's prior "
+                       "of %.0f px; starting from %.0f px (give extract.camera_params if you know it)",
+                       found.focal_px, field_of_view_deg(found.focal_px, camera.width, camera.height),
+                       found.focal_px / prior, prior, found.focal_px)
+    else:
+        logger.info("focal length: estimate %.0f px, prior %.0f px kept", found.focal_px, prior)
+    return {"prior_px": prior, "estimated_px": found.focal_px, "applied": applied, "num_pairs": found.num_pairs,
+            "cost": found.cost, "cost_at_prior": found.cost_at_prior, "sharpness": found.sharpness,
+            "agreement": found.agreement, "sound": found.sound}
