@@ -138,7 +138,7 @@ def test_a_wrong_frame_count_in_the_container_picks_with_the_true_count(tmp_path
     import contextlib
 
     frames = noise_frames(6, {1, 3, 4})  # windows [0,2) [2,4) [4,6): frames 0, 2, 5
-    monkeypatch.setattr(video, "open_video", contextlib.contextmanager(lambda path: iter([MisstatingCapture(
+    monkeypatch.setattr(video.picking, "open_video", contextlib.contextmanager(lambda path: iter([MisstatingCapture(
         frames, stated)])))
     clip = tmp_path / "walk.avi"
     clip.write_bytes(b"stands for the video")
@@ -231,6 +231,37 @@ def test_a_killed_decoding_is_redone_and_leaves_nothing_behind(tmp_path):
     assert json.loads((out / video.RECORD).read_text())["complete"]
 
 
+def test_a_decoding_killed_after_some_videos_keeps_their_frames(tmp_path, monkeypatch):
+    """Killed while decoding the second video of a folder: the next run keeps the first's frames
+    (not decoded again) and picks the second's again, its half-written frames gone."""
+    folder = tmp_path / "videos"
+    folder.mkdir()
+    write_video(folder / "a.avi", noise_frames(4, set(), seed=1))
+    write_video(folder / "b.avi", noise_frames(6, set(), seed=2))
+    videos, out, settings = video.find_videos(folder), tmp_path / "out", FrameSettings(frames=3)
+    real, decoded = video.folder.decode_video, []
+
+    def killed_at_b(clip, *args, **kwargs):
+        decoded.append(clip.name)
+        if clip.name == "b.avi":
+            (args[0] / "b_f000000.png").write_bytes(b"\x89PNG half")  # as a kill leaves a frame
+            raise KeyboardInterrupt
+        return real(clip, *args, **kwargs)
+
+    monkeypatch.setattr(video.folder, "decode_video", killed_at_b)
+    with pytest.raises(KeyboardInterrupt):
+        frames_for_run(videos, out, settings, progress=False)
+    a_frames = {p.name: p.stat().st_mtime_ns for p in (out / "images").iterdir() if p.name.startswith("a_")}
+    assert len(a_frames) == 3
+    monkeypatch.setattr(video.folder, "decode_video", lambda clip, *a, **k: decoded.append(clip.name) or real(
+        clip, *a, **k))
+    frames_for_run(videos, out, settings, progress=False)
+    assert decoded == ["a.avi", "b.avi", "b.avi"]  # a decoded once
+    names = {p.name: p.stat().st_mtime_ns for p in (out / "images").iterdir()}
+    assert {n: t for n, t in names.items() if n.startswith("a_")} == a_frames and len(names) == 6
+    assert json.loads((out / video.RECORD).read_text())["complete"]
+
+
 def test_frames_sara_did_not_write_are_refused(tmp_path):
     from sara.io import OutputStateError
 
@@ -268,7 +299,7 @@ def test_sara_run_on_a_video_resumes_and_refuses_other_settings(video_scene, tmp
     def no_decoding(*args, **kwargs):
         raise AssertionError("decoded again")
 
-    monkeypatch.setattr(video, "decode_video", no_decoding)
+    monkeypatch.setattr(video.folder, "decode_video", no_decoding)
     mtimes = {p.name: p.stat().st_mtime_ns for p in (out / "images").iterdir()}
     again = run_cli("run", clip, out, "--frames", "5", "--gt", gt, "-q")
     assert again.code == 0, again.err
@@ -308,6 +339,47 @@ def test_clips_of_two_sizes_get_a_camera_each_and_one_model(video_scene, tmp_pat
     assert len(rows) == 8 and len({c[3] for c in cameras}) == 2
     assert {c[:3] for c in cameras} == {("a", 800, 600), ("b", 600, 800)}
     assert record["stages"]["map"]["num_registered"] == 8, record["stages"]["map"]
+
+
+def test_a_folder_of_videos_that_changes_is_an_update(video_scene, tmp_path, run_cli):
+    """A clip added to a folder of videos: only it is decoded, the frames of the others stay as they
+    were, and the run is updated for the frames added (their own camera); a clip taken away: its
+    frames go, and the run is updated for the frames removed."""
+    import sqlite3
+
+    clip, _ = video_scene
+    with video.open_video(clip) as capture:
+        frames = [frame for ok, frame in iter(capture.read, (False, None)) if ok]
+    clips, out = tmp_path / "clips", tmp_path / "out"
+    clips.mkdir()
+    write_video(clips / "a.avi", frames[:4])
+    write_video(clips / "b.avi", frames[2:])
+    assert run_cli("run", clips, out, "--frames", "4", "-q", "--workers", "1").code == 0
+
+    def state() -> tuple[dict[str, int], dict[str, int]]:
+        with sqlite3.connect(out / "database.db") as con:
+            cameras = dict(con.execute("SELECT name, camera_id FROM images"))
+        return {p.name: p.stat().st_mtime_ns for p in (out / "images").iterdir()}, cameras
+
+    before, cameras_before = state()
+    write_video(clips / "c.avi", [np.ascontiguousarray(np.rot90(f, k=-1)) for f in frames[1:5]])
+    result = run_cli("run", clips, out, "--frames", "4", "-q", "--workers", "1")
+    assert result.code == 0, result.err
+    after, cameras = state()
+    assert {n: t for n, t in after.items() if not n.startswith("c_")} == before  # a's and b's frames untouched
+    assert sum(n.startswith("c_") for n in after) == 4
+    record = json.loads((out / "run.json").read_text())
+    assert record["stages"]["update"]["num_added"] == 4 and record["stages"]["update"]["num_removed"] == 0
+    assert {n: c for n, c in cameras.items() if not n.startswith("c_")} == cameras_before
+    assert len({c for n, c in cameras.items() if n.startswith("c_")} - set(cameras_before.values())) == 1
+    assert record["stages"]["map"]["num_registered"] == 12, record["stages"]["map"]
+
+    (clips / "b.avi").unlink()
+    result = run_cli("run", clips, out, "--frames", "4", "-q", "--workers", "1")
+    assert result.code == 0, result.err
+    assert not any(n.startswith("b_") for n in state()[0])
+    record = json.loads((out / "run.json").read_text())
+    assert record["stages"]["update"]["num_removed"] == 4 and record["stages"]["map"]["num_registered"] == 8
 
 
 @pytest.mark.parametrize("content, message", [

@@ -55,7 +55,7 @@ def resolve_camera_mode(images: ImageSet, conf: ExtractConfig, groups: dict[str,
     return "single" if len(cameras) == 1 else "per_image"
 
 
-def _share_per_video(db_path: Path, images: ImageSet, groups: dict[str, str]) -> None:
+def share_per_video(db_path: Path, images: ImageSet, groups: dict[str, str]) -> None:
     """One camera for the frames of each video (of each size, should a video change size)."""
     by_video: dict[tuple, list[str]] = {}
     for name in images.names:
@@ -185,7 +185,7 @@ def run(conf: ExtractConfig, images: ImageSet, out_dir: Path, *, executor: Execu
         import_keypoints(db_path, h5_path, kept)
         estimate_with = partial(focal.estimate_from_features, h5_path, kept) if wants_focal else None
     if camera_mode == "per_video":
-        _share_per_video(db_path, images, camera_groups or {})
+        share_per_video(db_path, images, camera_groups or {})
     info = summarize(counts)
     if estimate_with is not None:
         info["focal"] = focal.check_prior(db_path, estimate_with)

@@ -123,11 +123,12 @@ def _save(out_dir: Path, key: str, info: dict[str, Any]) -> None:
 
 
 def update_features(conf: ExtractConfig, images: ImageSet, out_dir: Path, *, executor: Executor | None = None,
-                    progress: bool = True) -> dict[str, Any] | None:
+                    progress: bool = True, camera_groups: dict[str, str] | None = None) -> dict[str, Any] | None:
     """Bring the features of an output folder up to date with `images`, extracting only the images
     added or changed since its run; returns the update's ledger (None: nothing to update here,
     the extract stage decides). Raises SettingsChangedError, naming the setting, when the
-    extraction settings differ."""
+    extraction settings differ. `camera_groups` (frame -> its video): the frames of a video added
+    to a folder of videos share a camera of their own, as in a first run."""
     out_dir = Path(out_dir)
     if ledger(out_dir).get("phase") == "swap":
         _swap_in(out_dir)  # a run killed while swapping: finish it whatever the images are now
@@ -156,10 +157,14 @@ def update_features(conf: ExtractConfig, images: ImageSet, out_dir: Path, *, exe
         current = _plan(out_dir, conf, info, digests, key)
     tic = time.perf_counter()
     change = compare(old_digests, digests, across_folders=_across_folders(info))
-    extracted, failed = _update_copies(conf, images, out_dir, change, info, executor, progress)
+    grouped = camera_groups if conf.camera_mode == "auto" and camera_groups else None
+    extracted, failed = _update_copies(conf, images, out_dir, change, info, executor, progress, grouped)
     colmap.copy_database(_work(out_dir) / extract.DB_NAME, _work(out_dir) / MATCHED_NAME)
+    new_info = _new_info(out_dir, info, digests, extracted, failed, time.perf_counter() - tic)
+    if grouped and len(set(grouped.values())) > 1:
+        new_info["camera_mode"] = "per_video"
     current.update(phase="swap", num_extracted=extracted, extract_time_s=time.perf_counter() - tic,
-                   extract_info=_new_info(out_dir, info, digests, extracted, failed, time.perf_counter() - tic))
+                   extract_info=new_info)
     _save(out_dir, key, current)
     _swap_in(out_dir)
     save_digests()
@@ -244,7 +249,8 @@ def _remove(path: Path) -> None:
 
 
 def _update_copies(conf: ExtractConfig, images: ImageSet, out_dir: Path, change: Change, info: dict[str, Any],
-                   executor: Executor | None, progress: bool) -> tuple[int, dict[str, str]]:
+                   executor: Executor | None, progress: bool,
+                   grouped: dict[str, str] | None = None) -> tuple[int, dict[str, str]]:
     """Delete the images that go from the database copy, import and extract those that come, and
     write the new features file beside it; returns the number of images the update extracts and
     those it set aside (name -> why). With COLMAP's SIFT each new image is decoded once, by the
@@ -258,14 +264,14 @@ def _update_copies(conf: ExtractConfig, images: ImageSet, out_dir: Path, change:
     if hasattr(backend, "extract_to_database"):
         todo = sorted(set(come.names) - colmap.images_with_keypoints(db))
         if todo:
-            camera_mode, existing = _camera_of_new(db, images, todo, info)
+            camera_mode, existing = _camera_of_new(db, images, todo, info, grouped)
             backend.extract_to_database(db, come, todo, progress=progress, camera_mode=camera_mode,
                                         existing_camera_id=existing)
         failed = not_extracted(come, colmap.images_with_keypoints(db), todo)
     else:
         to_import = [n for n in come.names if n not in colmap.database_images(db)]
         if to_import:  # an empty list would make pycolmap import every image of the folder
-            camera_mode, existing = _camera_of_new(db, images, to_import, info)
+            camera_mode, existing = _camera_of_new(db, images, to_import, info, grouped)
             colmap.import_images(db, images.root, to_import, camera_mode=camera_mode, camera_model=conf.camera_model,
                                  camera_params=conf.camera_params, existing_camera_id=existing,
                                  default_focal_length_factor=conf.default_focal_length_factor)
@@ -278,14 +284,18 @@ def _update_copies(conf: ExtractConfig, images: ImageSet, out_dir: Path, change:
         extracted = {"path": added_h5, "names": done}
         extract.import_keypoints(db, added_h5, done)
     set_aside(come, failed)  # one warning each
+    if grouped:
+        extract.share_per_video(db, come, grouped)
     _write_features(out_dir, conf, images, change, extracted)
     return len(come.names) - len(failed), failed  # over every attempt: a killed update resumed counts them once
 
 
-def _camera_of_new(db: Path, images: ImageSet, names: list[str], info: dict[str, Any]) -> tuple[str, int | None]:
+def _camera_of_new(db: Path, images: ImageSet, names: list[str], info: dict[str, Any],
+                   grouped: dict[str, str] | None = None) -> tuple[str, int | None]:
     """(camera mode, existing camera id) for the new images: the run's shared camera when it has
-    one and they have its size, else a camera each (or per folder, as the run did)."""
-    mode = info.get("camera_mode", "per_image")
+    one and they have its size, else a camera each (or per folder, as the run did; frames of a new
+    video, `grouped`: a camera each, then one per video)."""
+    mode = "per_image" if grouped else info.get("camera_mode", "per_image")
     shared = colmap.shared_camera(db) if mode == "single" else None
     if shared is not None and all(images.sizes[n] == (shared.width, shared.height) for n in names):
         return "single", shared.camera_id

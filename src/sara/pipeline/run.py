@@ -67,12 +67,14 @@ def _run_stages(conf: PipelineConfig, images: ImageSet, images_root: Path, out_d
     colmap.send_log_to(out_dir / "logs", verbose=verbose_colmap)
     colmap.set_seed(conf.seed)
     first_run = not (out_dir / "run.json").exists()
+    groups = video.camera_groups(out_dir, images_root)  # frame -> its video, for a run on videos
     if overwrite:
         incremental.discard(out_dir)
     else:  # images added, removed or changed since the last run: only they are extracted
-        incremental.update_features(conf.extract, images, out_dir, executor=executor, progress=progress)
+        incremental.update_features(conf.extract, images, out_dir, executor=executor, progress=progress,
+                                    camera_groups=groups)
     features = extract.run(conf.extract, images, out_dir, executor=executor, overwrite=overwrite, progress=progress,
-                           camera_groups=video.camera_groups(out_dir, images_root))
+                           camera_groups=groups)
     images = extract.usable(images, out_dir)
     report = RunReport(out_dir, images_root, conf.to_dict(), skipped_images=images.skipped)
     report.stages["images"] = {"num_images": len(images.names), "num_skipped": len(images.skipped)}

@@ -1,23 +1,11 @@
-"""Video input: the frames of a video, or of a folder of videos, picked and written as PNG images so
-that the pipeline runs on them as on any folder of images (`sara run capture.mp4 OUT`).
-
-Frames are picked evenly in time: each video is cut into as many windows of consecutive frames as
-frames are wanted, and one sharp frame of each window is kept (by the variance of the Laplacian of
-its grey image: the frame nearest the window's middle among those nearly as sharp as the sharpest),
-since motion blur is what spoils the frames of a hand-held capture. A frame's name says where it
-comes from and sorts in time order: `<video stem>_f<frame index>.png`, the index counted from 0 in
-the video. `OUT/.sara/video.json` records the videos (size and digest), the
-settings and every picked frame (index, time, sharpness): a re-run with the same videos and
-settings reuses the frames without decoding, other videos or settings are refused.
-"""
+"""Picking the frames of a video: windows of consecutive frames, the sharpest of each near its
+middle (the pure core), finding the videos of an input, and decoding them (OpenCV's FFmpeg)."""
 
 from __future__ import annotations
 
 import contextlib
 import logging
 import os
-import re
-import shutil
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -26,9 +14,8 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from .colmap import model as colmap_model
-from .io import OutputLock, OutputStateError, atomic_path, file_digest, prepare_output_dir, read_json, write_json_atomic
-from .io.images import list_image_files
+from ..io import atomic_path, file_digest
+from ..io.images import list_image_files
 
 logger = logging.getLogger(__name__)
 
@@ -44,11 +31,6 @@ SHARPNESS_SIDE_PX = 1024
 #: a frame at least this fraction of its window's highest sharpness counts as sharp: the frames of a
 #: steady sequence differ from their neighbours by a few percent, a blurred one scores far lower
 SHARP_ENOUGH = 0.9
-#: where the record of the picked frames lives, relative to the output folder
-RECORD = Path(".sara") / "video.json"
-#: the ground truth of the picked frames (`--gt` of a video run), relative to the output folder
-FRAMES_GT = Path(".sara") / "video-gt"
-RECORD_VERSION = 1
 
 
 # ---------------------------------------------------------------------------------------------
@@ -228,7 +210,7 @@ def decode_video(video: Path, folder: Path, settings: FrameSettings, *, progress
     num_frames = len(sharpness)
     picks = pick_sharp(np.array(sharpness), settings.num_picks(num_frames, fps, video.name))
     written = _write_frames(video, folder, picks, num_frames, progress=progress)
-    entry = {"name": video.name, "path": str(video.resolve()), **_identity(video), "num_frames": num_frames,
+    entry = {"name": video.name, "path": str(video.resolve()), **identity_of(video), "num_frames": num_frames,
              "fps": fps, "width": size[0], "height": size[1], "frames": []}
     for index in picks:
         entry["frames"].append({"name": frame_name(video.stem, index, num_frames), "index": index,
@@ -264,180 +246,6 @@ def _write_frames(video: Path, folder: Path, picks: list[int], num_frames: int, 
     return written
 
 
-def _identity(video: Path) -> dict[str, Any]:
+def identity_of(video: Path) -> dict[str, Any]:
     digest = file_digest(video)
     return {"size": digest["size"], "sha256": digest["sha256"]}
-
-
-# ---------------------------------------------------------------------------------------------
-# The frames folder of a run: made once, reused, never mixed with other frames
-# ---------------------------------------------------------------------------------------------
-
-
-def frames_for_run(videos: list[Path], out_dir: Path, settings: FrameSettings, *, gt_dir: Path | None = None,
-                   overwrite: bool = False, progress: bool = True) -> tuple[Path, Path | None]:
-    """(`OUT/images` holding the frames picked from `videos`, the ground truth of those frames or
-    None): what `sara run VIDEO OUT` reconstructs from and is scored against.
-
-    The frames are reused when `OUT/.sara/video.json` says the folder holds the frames of these
-    very videos and settings; otherwise they are picked (every frame written atomically, the record
-    marked complete only at the end). Raises OutputStateError (exit 3) when the folder holds frames
-    of other videos or settings, or files sara did not write; `overwrite` picks them again instead.
-    """
-    if gt_dir is not None and not Path(gt_dir).exists():  # before any decoding
-        raise FileNotFoundError(f"ground-truth folder not found: {gt_dir}")
-    out_dir = prepare_output_dir(Path(out_dir))
-    with OutputLock(out_dir):
-        folder = _picked_frames(videos, out_dir, settings, overwrite=overwrite, progress=progress)
-        gt = frames_ground_truth(Path(gt_dir), out_dir) if gt_dir is not None else None
-    return folder, gt
-
-
-def _picked_frames(videos: list[Path], out_dir: Path, settings: FrameSettings, *, overwrite: bool,
-                   progress: bool) -> Path:
-    folder = out_dir / "images"
-    identity = [{"name": v.name, **_identity(v)} for v in videos]
-    record = read_record(out_dir)
-    same = record is not None and record.get("videos_identity") == identity and record.get("settings") == \
-        settings.to_dict()
-    if not overwrite:
-        if record is not None and not same:
-            raise OutputStateError(f"{_difference(record, identity, settings, folder)}: use another output folder, "
-                                   "or --overwrite to pick the frames again")
-        foreign = _foreign_files(folder, record)
-        if foreign:
-            raise OutputStateError(f"{folder} holds files sara did not pick from {videos[0].name} (e.g. "
-                                   f"{foreign[0]}): use another output folder, or --overwrite to pick the frames "
-                                   "again (it removes them)")
-        if same and record.get("complete") and _frames_present(record, folder):
-            logger.info("reusing the %d frames picked (%s) in %s", _count(record), settings.flag(), folder)
-            return folder
-    _clear(folder, record if not overwrite else None)
-    folder.mkdir(parents=True, exist_ok=True)
-    pending = {"version": RECORD_VERSION, "complete": False, "settings": settings.to_dict(),
-               "videos_identity": identity, "videos": []}
-    write_json_atomic(out_dir / RECORD, pending)
-    entries = [decode_video(video, folder, settings, progress=progress) for video in videos]
-    write_json_atomic(out_dir / RECORD, {**pending, "complete": True, "videos": entries})
-    logger.info("%d frames picked from %d video(s) (%s) -> %s", sum(len(e["frames"]) for e in entries),
-                len(entries), settings.flag(), folder)
-    if settings.frames is None and settings.fps is None:
-        _say_spacing(entries)
-    return folder
-
-
-def _say_spacing(entries: list[dict[str, Any]]) -> None:
-    """Warn where the default number of frames leaves more than `SPARSE_SPACING_S` between them."""
-    for entry in entries:
-        picked, fps = len(entry["frames"]), entry.get("fps") or 0.0
-        spacing = entry["num_frames"] / fps / max(picked, 1) if fps > 0 else 0.0
-        if spacing > SPARSE_SPACING_S and picked < entry["num_frames"]:
-            logger.warning("%s: %d frames of a %.0f s video, one every %.1f s (the default, --frames %d): a "
-                           "camera that walks or turns needs closer frames, e.g. --fps 2 (%d frames)", entry["name"],
-                           picked, entry["num_frames"] / fps, spacing, DEFAULT_FRAMES,
-                           min(entry["num_frames"], round(2 * entry["num_frames"] / fps)))
-
-
-def read_record(out_dir: Path) -> dict[str, Any] | None:
-    """The record of the picked frames of an output folder (None when absent or unreadable)."""
-    try:
-        record = read_json(Path(out_dir) / RECORD)
-    except (OSError, ValueError, UnicodeDecodeError):
-        return None
-    return record if isinstance(record, dict) and record.get("version") == RECORD_VERSION else None
-
-
-def camera_groups(out_dir: Path, images_root: Path) -> dict[str, str]:
-    """Frame name -> the video it was picked from, where `images_root` is the frames folder of a
-    video run (`sara run VIDEO OUT`); empty for any other folder of images."""
-    record = read_record(out_dir)
-    if not record or not record.get("complete") or Path(images_root).resolve() != (Path(out_dir) / "images").resolve():
-        return {}
-    return {frame["name"]: entry["name"] for entry in record.get("videos", []) for frame in entry.get("frames", [])}
-
-
-def _difference(record: dict[str, Any], identity: list[dict[str, Any]], settings: FrameSettings,
-                folder: Path) -> str:
-    """What differs between the frames of `folder` and what this run asks for, in one clause."""
-    before = record.get("videos_identity") or []
-    old_names, new_names = [v.get("name") for v in before], [v["name"] for v in identity]
-    if old_names != new_names:
-        return f"{folder} holds the frames of {', '.join(map(str, old_names))}, not of {', '.join(new_names)}"
-    changed = [new["name"] for old, new in zip(before, identity) if old != new]
-    if changed:
-        return f"{changed[0]} changed (size or content) since its frames in {folder} were picked"
-    try:
-        old_flag = FrameSettings(**record["settings"]).flag()
-    except (KeyError, TypeError, ValueError):
-        old_flag = "other settings"
-    return f"{folder} holds frames picked with {old_flag}, not {settings.flag()}"
-
-
-def _ours(record: dict[str, Any] | None) -> re.Pattern[str]:
-    """The names sara writes in the frames folder for the videos of `record`: frames and the
-    temporary files of atomic writes."""
-    stems = [re.escape(Path(v.get("name", "")).stem) for v in (record or {}).get("videos_identity", [])]
-    frames = rf"(?:{'|'.join(stems)})_f\d{{6,}}\.png" if stems else r"(?!)"
-    return re.compile(rf"^(?:{frames}|\..+\.tmp)$")
-
-
-def _foreign_files(folder: Path, record: dict[str, Any] | None) -> list[str]:
-    if not folder.is_dir():
-        return []
-    ours = _ours(record)
-    return sorted(p.name for p in folder.iterdir() if not ours.match(p.name))
-
-
-def _clear(folder: Path, record: dict[str, Any] | None) -> None:
-    """Remove the frames (and temporary files) of `record` from `folder`; with no record, every file
-    (`--overwrite`: the folder is sara's own)."""
-    if not folder.is_dir():
-        return
-    ours = _ours(record)
-    for path in folder.iterdir():
-        if record is None or ours.match(path.name):
-            if path.is_dir() and not path.is_symlink():
-                shutil.rmtree(path)
-            else:
-                path.unlink()
-
-
-def _frames_present(record: dict[str, Any], folder: Path) -> bool:
-    """Whether every frame of a complete record is in `folder` with the size it was written with."""
-    for video in record.get("videos", []):
-        for frame in video.get("frames", []):
-            path = folder / frame["name"]
-            if not path.is_file() or path.stat().st_size != frame.get("bytes"):
-                logger.warning("frame %s is missing or changed: picking the frames again", frame["name"])
-                return False
-    return _count(record) > 0
-
-
-def _count(record: dict[str, Any]) -> int:
-    return sum(len(video.get("frames", [])) for video in record.get("videos", []))
-
-
-def frames_ground_truth(gt_dir: Path, out_dir: Path) -> Path:
-    """The ground truth of the picked frames only, `OUT/.sara/video-gt` (COLMAP text): a run on a
-    video is scored on the frames it was given, not on every frame that a ground truth poses.
-
-    Raises FileNotFoundError for a missing ground truth, ValueError when it poses none of the frames.
-    """
-    gt_dir = Path(gt_dir)
-    if not gt_dir.exists():
-        raise FileNotFoundError(f"ground-truth folder not found: {gt_dir}")
-    record = read_record(out_dir) or {}
-    names = {frame["name"] for video in record.get("videos", []) for frame in video["frames"]}
-    posed = set(colmap_model.read_model(gt_dir).names)
-    common = names & posed
-    if not common:
-        raise ValueError(f"the ground truth {gt_dir} poses none of the frames picked from the video (e.g. "
-                         f"{min(names, default='-')}; it poses e.g. {min(posed, default='-')}): frames are named "
-                         "<video stem>_f<frame index>.png, the index counted from 0")
-    dest = out_dir / FRAMES_GT
-    tmp = dest.with_name(f"{dest.name}.tmp")  # removed with the temporaries of a killed run
-    shutil.rmtree(tmp, ignore_errors=True)
-    colmap_model.write_model(gt_dir, tmp, keep=common, text=True)
-    shutil.rmtree(dest, ignore_errors=True)
-    tmp.rename(dest)
-    return dest
