@@ -97,12 +97,12 @@ def test_pairs_fitted_as_their_images_arrive_are_those_fitted_at_once(synthetic_
     with h5py.File(h5, "r") as f:
         names = sorted(f)
     with FeatureCache(h5, top_k=focal.NUM_KEYPOINTS) as cache:
-        at_once = focal.NearbyFundamentals(names).fundamentals(names, cache.get)
+        at_once = focal.NearbyFundamentals(names).fundamentals(names, cache.get)[""]
         arriving = focal.NearbyFundamentals(names)
         for k in range(1, len(names), 3):  # a few images at each look, the last not yet come
             arriving.add(cache.get, set(names[:k]))
         assert len(arriving.found) < len(arriving.pairs)  # the last images had not come yet
-        later = arriving.fundamentals(names, cache.get)
+        later = arriving.fundamentals(names, cache.get)[""]
     assert len(at_once) == len(later) >= focal.MIN_PAIRS
     assert all(np.array_equal(a, b) for a, b in zip(at_once, later))
 

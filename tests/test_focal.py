@@ -114,6 +114,39 @@ def test_a_long_lens_crop_of_a_real_scene_gets_a_longer_focal_length(tmp_path: P
     assert abs(shared_camera(off / extract.DB_NAME).mean_focal_length() - prior) < 1.0
 
 
+def test_each_videos_camera_gets_its_own_focal_check(tmp_path: Path):
+    """Long-lens crops (a fifth of each side: the true focal length 3.75x COLMAP's prior) as the
+    frames of two clips: each clip's camera is checked on its own frames, as one shared camera is,
+    and both start from the longer focal length."""
+    from sara import extract
+    from sara.colmap import shared_camera
+    from sara.config import ExtractConfig
+    from sara.io import records
+    from sara.io.images import scan_images
+
+    scene = scene_dir("strecha-Herz-Jesus-P25")
+    images = tmp_path / "images"
+    images.mkdir()
+    groups = {}
+    for k, path in enumerate(sorted((scene / "images").iterdir())):
+        with Image.open(path) as im:
+            w, h = im.size
+            name = f"{'ab'[k // 13]}_f{k:06d}.png"  # the first 13 views, then the other 12
+            im.crop((2 * w // 5, 2 * h // 5, 3 * w // 5, 3 * h // 5)).save(images / name)
+            groups[name] = f"{name[0]}.mp4"
+    prior = 1.2 * (3 * w // 5 - 2 * w // 5)
+    out = tmp_path / "out"
+    extract.run(ExtractConfig(num_threads=2), scan_images(images, progress=False), out, progress=False,
+                camera_groups=groups)
+    info = records.done_info(out, extract.STAGE)
+    assert info["camera_mode"] == "per_video" and "focal" not in info
+    assert sorted(info["focal_per_video"]) == ["a.mp4", "b.mp4"]
+    for video, found in info["focal_per_video"].items():
+        assert found["applied"] and focal.LONGER_THAN_PRIOR * prior <= found["estimated_px"] < 4.5 * prior, video
+        names = [n for n, v in groups.items() if v == video]
+        assert shared_camera(out / extract.DB_NAME, names).mean_focal_length() == found["estimated_px"]
+
+
 def test_the_new_setting_keeps_earlier_extractions_valid(tmp_path: Path):
     """Features extracted before `estimate_focal` existed keep their key at its default."""
     from sara import extract

@@ -55,12 +55,19 @@ def resolve_camera_mode(images: ImageSet, conf: ExtractConfig, groups: dict[str,
     return "single" if len(cameras) == 1 else "per_image"
 
 
-def share_per_video(db_path: Path, images: ImageSet, groups: dict[str, str]) -> None:
-    """One camera for the frames of each video (of each size, should a video change size)."""
+def share_per_video(db_path: Path, images: ImageSet, groups: dict[str, str]) -> dict[str, list[str]]:
+    """One camera for the frames of each video (of each size, should a video change size); returns
+    video -> its frames in the database."""
     by_video: dict[tuple, list[str]] = {}
+    kept = colmap.images_with_keypoints(db_path)
     for name in images.names:
-        by_video.setdefault((groups.get(name, name), images.sizes[name]), []).append(name)
+        if name in kept:
+            by_video.setdefault((groups.get(name, name), images.sizes[name]), []).append(name)
     colmap.share_cameras(db_path, list(by_video.values()))
+    out: dict[str, list[str]] = {}
+    for (video, _), names in by_video.items():
+        out.setdefault(video, []).extend(names)
+    return out
 
 
 #: settings added after outputs existed, with their defaults: at that default they stay out of the
@@ -169,12 +176,14 @@ def run(conf: ExtractConfig, images: ImageSet, out_dir: Path, *, executor: Execu
     one = "--camera-mode single" if camera_mode == "single" else "extract.camera_params" if conf.camera_params else ""
     odd = image_files.other_sizes(images, one) if one else {}
     images = set_aside(images, odd)
-    wants_focal = conf.estimate_focal and camera_mode == "single" and not conf.camera_params
-    if hasattr(backend, "extract_to_database"):
+    wants_focal = conf.estimate_focal and camera_mode in ("single", "per_video") and not conf.camera_params
+    groups = camera_groups if camera_mode == "per_video" else None
+    if hasattr(backend, "extract_to_database"):  # the focal check's pairs fitted during the extraction
         counts, failed, fundamentals = _extract_sift(backend, db_path, h5_path, images, importing, wants_focal,
-                                                     progress)
+                                                     progress, groups)
         set_aside(images, failed)  # one warning each
-        estimate_with = None if fundamentals is None else partial(focal.estimate, fundamentals)
+        estimate_with = None if fundamentals is None else (
+            lambda group, names: partial(focal.estimate, fundamentals.get(group, [])))
     else:
         if db_path.exists() and not _check_existing_database(db_path, images):
             colmap.remove_database(db_path)  # images were being imported when the run stopped: importing is cheap
@@ -183,12 +192,16 @@ def run(conf: ExtractConfig, images: ImageSet, out_dir: Path, *, executor: Execu
         counts, failed = extract_to_h5(backend, conf, images, h5_path, executor, progress)
         kept = set_aside(images, failed).names
         import_keypoints(db_path, h5_path, kept)
-        estimate_with = partial(focal.estimate_from_features, h5_path, kept) if wants_focal else None
-    if camera_mode == "per_video":
-        share_per_video(db_path, images, camera_groups or {})
+        estimate_with = (lambda group, names: partial(focal.estimate_from_features, h5_path, names)) \
+            if wants_focal else None
     info = summarize(counts)
-    if estimate_with is not None:
-        info["focal"] = focal.check_prior(db_path, estimate_with)
+    if groups is not None:
+        videos = share_per_video(db_path, images, groups)
+        if estimate_with is not None:
+            info["focal_per_video"] = {video: focal.check_prior(db_path, estimate_with(video, names), names, video)
+                                       for video, names in videos.items()}
+    elif estimate_with is not None:
+        info["focal"] = focal.check_prior(db_path, estimate_with("", [n for n in images.names if n not in failed]))
     if camera_mode == "per_image":  # how many of the images' own cameras start from a guessed focal length
         priors = colmap.camera_priors(db_path)
         info["cameras_guessed"] = [sum(not known for known in priors.values()), len(priors)]
@@ -201,19 +214,21 @@ def run(conf: ExtractConfig, images: ImageSet, out_dir: Path, *, executor: Execu
 
 
 def _extract_sift(backend: ColmapSift, db_path: Path, h5_path: Path, images: ImageSet, camera_mode: str,
-                  wants_focal: bool, progress: bool) -> tuple[dict[str, int], dict[str, str], list | None]:
+                  wants_focal: bool, progress: bool, groups: dict[str, str] | None = None
+                  ) -> tuple[dict[str, int], dict[str, str], dict[str, list] | None]:
     """COLMAP's SIFT into the database, each image decoded once, by COLMAP's reader, which imports
     it too (an image it cannot decode is set aside after, with the reason); the features copied
     into `h5_path` and the focal check's pairs fitted while COLMAP extracts. Returns keypoints per
     image, the images set aside (name -> why), and the focal check's fundamental matrices (None
-    when there is nothing to check: not `wants_focal`, or the focal length came with the images)."""
+    when there is nothing to check: not `wants_focal`, or the focal length came with the images), by
+    video (`groups`: frame -> its video; "" for all the images without groups)."""
     existing = _resumable_database(db_path, images, camera_mode)
     if not db_path.exists():
         with atomic_path(db_path) as tmp:
             tmp.unlink()
             colmap.create_database(tmp)
     todo = sorted(set(images.names) - colmap.images_with_keypoints(db_path))
-    nearby = focal.NearbyFundamentals(images.names) if wants_focal else None
+    nearby = focal.NearbyFundamentals(images.names, groups=groups) if wants_focal else None
     priors_read = False
     with atomic_path(h5_path) as tmp, h5py.File(tmp, "w") as h5:
         copy = DatabaseToH5(db_path, h5, images.sizes)

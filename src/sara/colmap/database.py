@@ -129,11 +129,16 @@ def cameras_by_image(db_path: Path) -> dict[str, CameraInfo]:
         return {im.name: cams[im.camera_id] for im in db.read_all_images()}
 
 
-def shared_camera(db_path: Path) -> CameraInfo | None:
-    """The database's camera when every image uses one and the same, else None."""
+def shared_camera(db_path: Path, names: list[str] | None = None) -> CameraInfo | None:
+    """The camera of the images `names` (None: every image of the database) when they use one and
+    the same, else None."""
     with open_pycolmap_database(db_path) as db:
-        cameras = db.read_all_cameras()
-    return CameraInfo.of(cameras[0]) if len(cameras) == 1 else None
+        if names is None:
+            cameras = db.read_all_cameras()
+            return CameraInfo.of(cameras[0]) if len(cameras) == 1 else None
+        wanted = set(names)
+        ids = {im.camera_id for im in db.read_all_images() if im.name in wanted}
+        return CameraInfo.of(db.read_camera(ids.pop())) if len(ids) == 1 else None
 
 
 def set_focal_length(db_path: Path, camera_id: int, focal_px: float) -> None:

@@ -66,9 +66,9 @@ class ExtractConfig:
         from EXIF or the prior.""", advanced=False)
     default_focal_length_factor: float = option(1.2, reals(0, 100, low_open=True), """COLMAP's focal length
         prior: focal = factor * max(width, height).""")
-    estimate_focal: bool = option(True, flag(), """With one shared camera and neither an EXIF focal length nor
-        camera_params: estimate its focal length from pairs of neighbouring images and use it where it is at
-        least 2.5x the prior (long lenses; `sara.scoring.focal`).""")
+    estimate_focal: bool = option(True, flag(), """With one shared camera (or one per video) and neither an
+        EXIF focal length nor camera_params: estimate its focal length from pairs of neighbouring images and use
+        it where it is at least 2.5x the prior (long lenses; `sara.scoring.focal`).""")
     num_threads: int = option(-1, threads(), "COLMAP's extraction threads; -1: every core.")
 
     def __post_init__(self) -> None:

@@ -167,13 +167,24 @@ def pair_fundamental(fa: Features, fb: Features, *, seed: int = 0) -> np.ndarray
 
 
 class NearbyFundamentals:
-    """The fundamental matrices of the `nearby_pairs` of a capture, fitted as the features of their
-    images arrive: the SIFT extraction fits them while COLMAP is still extracting (`add` from its
-    watch), so that the focal check costs next to nothing after it."""
+    """The fundamental matrices of the `nearby_pairs` of a capture (of each video's frames apart,
+    `groups`: name -> its video), fitted as the features of their images arrive: the SIFT
+    extraction fits them while COLMAP is still extracting (`add` from its watch), so that the focal
+    check costs next to nothing after it."""
 
-    def __init__(self, names: list[str], *, seed: int = 0) -> None:
-        self.pairs, self.seed = nearby_pairs(names), seed
+    def __init__(self, names: list[str], *, seed: int = 0, groups: dict[str, str] | None = None) -> None:
+        self.groups = groups or {}
+        self.pairs, self.seed = self._nearby(names), seed
         self.found: dict[tuple[str, str], np.ndarray | None] = {}
+
+    def _nearby(self, names: list[str]) -> list[tuple[str, str]]:
+        return [pair for group in self._split(names).values() for pair in nearby_pairs(group)]
+
+    def _split(self, names: list[str]) -> dict[str, list[str]]:
+        by_group: dict[str, list[str]] = {}
+        for name in names:
+            by_group.setdefault(self.groups.get(name, ""), []).append(name)
+        return by_group
 
     def add(self, read: Callable[[str], Features], ready: Container[str]) -> None:
         """Fit the pairs not fitted yet whose two images are `ready` (`read` gives their features,
@@ -188,12 +199,14 @@ class NearbyFundamentals:
                 fa, fb = (held[n] if n in held else held.setdefault(n, read(n)) for n in (a, b))
                 self.found[(a, b)] = pair_fundamental(fa, fb, seed=self.seed)
 
-    def fundamentals(self, names: list[str], read: Callable[[str], Features]) -> list[np.ndarray]:
-        """The matrices of the nearby pairs of `names` (the images in the end: those set aside during
-        extraction change the pairs), fitting those still missing."""
-        self.pairs = nearby_pairs(names)
+    def fundamentals(self, names: list[str], read: Callable[[str], Features]) -> dict[str, list[np.ndarray]]:
+        """Group ("" without groups) -> the matrices of the nearby pairs of its images among `names`
+        (the images in the end: those set aside during extraction change the pairs), fitting those
+        still missing."""
+        self.pairs = self._nearby(names)
         self.add(read, set(names))
-        return [F for F in (self.found[pair] for pair in self.pairs) if F is not None]
+        return {group: [F for F in (self.found[pair] for pair in nearby_pairs(members)) if F is not None]
+                for group, members in self._split(names).items()}
 
 
 def estimate_from_features(features_path: Path, names: list[str], width: int, height: int,
@@ -201,32 +214,35 @@ def estimate_from_features(features_path: Path, names: list[str], width: int, he
     """Match pairs near in name order (mutual nearest neighbours of the strongest features), fit a
     fundamental matrix to each, and estimate the shared focal length from them."""
     with FeatureCache(features_path, top_k=NUM_KEYPOINTS, capacity=8) as cache:
-        fundamentals = NearbyFundamentals(names, seed=seed).fundamentals(names, cache.get)
+        fundamentals = NearbyFundamentals(names, seed=seed).fundamentals(names, cache.get).get("", [])
     return estimate(fundamentals, width, height, prior_px)
 
 
-def check_prior(db_path: Path, estimate_with: Callable[[int, int, float], FocalEstimate | None]) -> dict | None:
-    """Replace COLMAP's focal prior of the shared camera by an estimate from the images where that
-    is clearly longer (`estimate_with(width, height, prior)`: `estimate` or `estimate_from_features`);
-    what was found goes into the extract stage's record."""
-    camera = colmap.shared_camera(db_path)
+def check_prior(db_path: Path, estimate_with: Callable[[int, int, float], FocalEstimate | None],
+                names: list[str] | None = None, label: str = "") -> dict | None:
+    """Replace COLMAP's focal prior of the shared camera (of the images `names`: the frames of one
+    video) by an estimate from the images where that is clearly longer (`estimate_with(width,
+    height, prior)`: `estimate` or `estimate_from_features`); what was found goes into the extract
+    stage's record; `label` names the video in the messages."""
+    camera = colmap.shared_camera(db_path, names)
+    of = f" of {label}" if label else ""
     if camera is None or camera.has_prior_focal_length:  # EXIF gave the focal length
         return None
     prior = float(camera.mean_focal_length())
     found = estimate_with(camera.width, camera.height, prior)
     if found is None:
-        logger.info("focal length: too few pairs of neighbouring images that tell it (a camera moving straight "
-                    "ahead tells none) to check COLMAP's prior (%.0f px)", prior)
+        logger.info("focal length%s: too few pairs of neighbouring images that tell it (a camera moving straight "
+                    "ahead tells none) to check COLMAP's prior (%.0f px)", of, prior)
         return {"prior_px": prior, "estimated_px": None, "applied": False}
     applied = found.replaces(prior)
     if applied:
         colmap.set_focal_length(db_path, camera.camera_id, found.focal_px)
-        logger.warning("focal length: the images say %.0f px (%.1f-degree field of view), %.2fx COLMAP's prior "
-                       "of %.0f px; starting from %.0f px (give extract.camera_params if you know it)",
+        logger.warning("focal length%s: the images say %.0f px (%.1f-degree field of view), %.2fx COLMAP's prior "
+                       "of %.0f px; starting from %.0f px (give extract.camera_params if you know it)", of,
                        found.focal_px, field_of_view_deg(found.focal_px, camera.width, camera.height),
                        found.focal_px / prior, prior, found.focal_px)
     else:
-        logger.info("focal length: estimate %.0f px, prior %.0f px kept", found.focal_px, prior)
+        logger.info("focal length%s: estimate %.0f px, prior %.0f px kept", of, found.focal_px, prior)
     return {"prior_px": prior, "estimated_px": found.focal_px, "applied": applied, "num_pairs": found.num_pairs,
             "cost": found.cost, "cost_at_prior": found.cost_at_prior, "sharpness": found.sharpness,
             "agreement": found.agreement, "sound": found.sound}
