@@ -79,6 +79,20 @@ def test_a_sharp_frame_near_the_middle_of_each_window_is_picked():
     assert pick_sharp(np.array([100.0, 95.0, 20.0]), 1) == [1]
 
 
+def test_frames_without_texture_are_passed_over_and_the_picks_spread_over_the_others():
+    """Black frames (a fade in, a lens cap) are never picked while textured ones are: the windows
+    cover the textured frames only; a video of flat frames alone still gives its picks."""
+    sharpness = np.array([0.0] * 4 + [10.0] * 8 + [0.0] * 2 + [10.0] * 4)
+    contrast = np.where(sharpness > 0, 50.0, 0.5)
+    picks = video.pick_textured(sharpness, contrast, lambda n: 4)
+    assert all(contrast[picks] >= video.FLAT_CONTRAST) and len(picks) == 4
+    assert picks == [5, 8, 11, 16]  # windows of three over the 12 textured frames, their middles
+    assert video.pick_textured(np.zeros(6), np.zeros(6), lambda n: n // 2) == video.pick_sharp(np.zeros(6), 3)
+    counted = []
+    video.pick_textured(sharpness, contrast, lambda n: counted.append(n) or 2)
+    assert counted == [12]  # --fps counts the seconds of textured video
+
+
 def test_frame_settings():
     assert FrameSettings().to_dict() == {"frames": video.DEFAULT_FRAMES, "fps": None}
     assert FrameSettings(frames=8).num_picks(5, 30.0, "v") == 5  # at most every frame
@@ -131,6 +145,14 @@ class MisstatingCapture:
 
     def read(self) -> tuple[bool, np.ndarray | None]:
         return (True, self.retrieve()[1]) if self.grab() else (False, None)
+
+
+def test_a_video_that_fades_in_gives_no_black_frame(tmp_path):
+    black = [np.zeros((64, 96, 3), np.uint8)] * 4
+    clip = write_video(tmp_path / "fade.avi", black + noise_frames(8, set()))
+    entry = video.decode_video(clip, tmp_path / "frames", FrameSettings(frames=4), progress=False)
+    assert entry["num_flat"] == 4 and len(entry["frames"]) == 4
+    assert min(f["index"] for f in entry["frames"]) >= 4
 
 
 @pytest.mark.parametrize("stated", [0, 6, 10])

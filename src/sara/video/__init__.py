@@ -18,6 +18,7 @@ frames folder of a run and its record.
 from .folder import FRAMES_GT, RECORD, camera_groups, frames_for_run, frames_ground_truth, read_record
 from .picking import (
     DEFAULT_FRAMES,
+    FLAT_CONTRAST,
     SHARP_ENOUGH,
     SHARPNESS_SIDE_PX,
     SPARSE_SPACING_S,
@@ -29,10 +30,11 @@ from .picking import (
     laplacian_sharpness,
     open_video,
     pick_sharp,
+    pick_textured,
     window_bounds,
 )
 
-__all__ = ["DEFAULT_FRAMES", "FRAMES_GT", "RECORD", "SHARPNESS_SIDE_PX", "SHARP_ENOUGH", "SPARSE_SPACING_S",
-           "VIDEO_EXTENSIONS", "FrameSettings", "camera_groups", "decode_video", "find_videos", "frame_name",
-           "frames_for_run", "frames_ground_truth", "laplacian_sharpness", "open_video", "pick_sharp",
-           "read_record", "window_bounds"]
+__all__ = ["DEFAULT_FRAMES", "FLAT_CONTRAST", "FRAMES_GT", "RECORD", "SHARPNESS_SIDE_PX", "SHARP_ENOUGH",
+           "SPARSE_SPACING_S", "VIDEO_EXTENSIONS", "FrameSettings", "camera_groups", "decode_video", "find_videos",
+           "frame_name", "frames_for_run", "frames_ground_truth", "laplacian_sharpness", "open_video", "pick_sharp",
+           "pick_textured", "read_record", "window_bounds"]

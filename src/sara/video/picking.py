@@ -6,7 +6,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -31,6 +31,10 @@ SHARPNESS_SIDE_PX = 1024
 #: a frame at least this fraction of its window's highest sharpness counts as sharp: the frames of a
 #: steady sequence differ from their neighbours by a few percent, a blurred one scores far lower
 SHARP_ENOUGH = 0.9
+#: a frame whose grey levels spread less than this (standard deviation, of 255) holds nothing to
+#: match: black, one colour, a lens cap, the first frames of a fade. Such frames are passed over,
+#: and the picks spread over the others (textured frames spread by tens: 47-64 on the test scenes)
+FLAT_CONTRAST = 4.0
 
 
 # ---------------------------------------------------------------------------------------------
@@ -68,13 +72,28 @@ def pick_sharp(sharpness: np.ndarray, num_picks: int) -> list[int]:
 def laplacian_sharpness(frame: np.ndarray) -> float:
     """Variance of the Laplacian of a frame's grey image (BGR or grey uint8, downscaled to at most
     SHARPNESS_SIDE_PX a side): higher is sharper."""
+    return frame_scores(frame)[0]
+
+
+def frame_scores(frame: np.ndarray) -> tuple[float, float]:
+    """(sharpness: `laplacian_sharpness`, contrast: the standard deviation of the grey levels) of
+    a frame, from one grey image downscaled to at most SHARPNESS_SIDE_PX a side."""
     import cv2
 
     grey = cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY) if frame.ndim == 3 else frame
     scale = SHARPNESS_SIDE_PX / max(grey.shape[:2])
     if scale < 1:
         grey = cv2.resize(grey, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
-    return float(cv2.Laplacian(grey, cv2.CV_64F).var())
+    return float(cv2.Laplacian(grey, cv2.CV_64F).var()), float(grey.std())
+
+
+def pick_textured(sharpness: np.ndarray, contrast: np.ndarray, num_picks: Callable[[int], int]) -> list[int]:
+    """`pick_sharp` over the frames that are not flat (contrast at least FLAT_CONTRAST; all of them
+    when every frame is flat), `num_picks(number of such frames)` of them: frame indices."""
+    textured = np.flatnonzero(np.asarray(contrast) >= FLAT_CONTRAST)
+    if len(textured) == 0:
+        textured = np.arange(len(sharpness))
+    return [int(textured[k]) for k in pick_sharp(np.asarray(sharpness)[textured], num_picks(len(textured)))]
 
 
 @dataclass(frozen=True)
@@ -196,22 +215,28 @@ def decode_video(video: Path, folder: Path, settings: FrameSettings, *, progress
     """
     import cv2
 
-    sharpness, times = [], []  # of every frame; times in seconds
+    sharpness, contrast, times = [], [], []  # of every frame; times in seconds
     with open_video(video) as capture:
         stated = int(capture.get(cv2.CAP_PROP_FRAME_COUNT))
         fps = float(capture.get(cv2.CAP_PROP_FPS) or 0.0)
         size = (int(capture.get(cv2.CAP_PROP_FRAME_WIDTH)), int(capture.get(cv2.CAP_PROP_FRAME_HEIGHT)))
         for frame in tqdm(_frames(capture), total=stated if stated > 0 else None, desc=f"score frames of {video.name}",
                           unit="frame", disable=not progress):
-            sharpness.append(laplacian_sharpness(frame))
+            scores = frame_scores(frame)
+            sharpness.append(scores[0])
+            contrast.append(scores[1])
             times.append(capture.get(cv2.CAP_PROP_POS_MSEC) / 1000.0)
     if not sharpness:
         raise ValueError(f"cannot read the video {video}: no frame could be decoded")
     num_frames = len(sharpness)
-    picks = pick_sharp(np.array(sharpness), settings.num_picks(num_frames, fps, video.name))
+    picks = pick_textured(np.array(sharpness), np.array(contrast), lambda n: settings.num_picks(n, fps, video.name))
+    flat = int(np.sum(np.array(contrast) < FLAT_CONTRAST))
+    if flat:
+        logger.info("%s: %d of its %d frames have no texture (black or one colour: a fade, a lens cap): the frames "
+                    "are picked among the others", video.name, flat, num_frames)
     written = _write_frames(video, folder, picks, num_frames, progress=progress)
     entry = {"name": video.name, "path": str(video.resolve()), **identity_of(video), "num_frames": num_frames,
-             "fps": fps, "width": size[0], "height": size[1], "frames": []}
+             "num_flat": flat, "fps": fps, "width": size[0], "height": size[1], "frames": []}
     for index in picks:
         entry["frames"].append({"name": frame_name(video.stem, index, num_frames), "index": index,
                                 "time_s": round(times[index], 6), "sharpness": round(sharpness[index], 3),
