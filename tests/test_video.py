@@ -354,6 +354,7 @@ def test_clips_of_two_sizes_get_a_camera_each_and_one_model(video_scene, tmp_pat
     assert result.code == 0, result.err
     record = json.loads((out / "run.json").read_text())
     assert record["stages"]["extract"]["camera_mode"] == "per_video"
+    assert "2 cameras (one per video)" in (out / "report.md").read_text()
     with sqlite3.connect(out / "database.db") as con:
         rows = con.execute("SELECT i.name, c.width, c.height, c.camera_id FROM images i JOIN cameras c "
                            "USING (camera_id)").fetchall()

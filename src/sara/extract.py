@@ -202,8 +202,9 @@ def run(conf: ExtractConfig, images: ImageSet, out_dir: Path, *, executor: Execu
                                        for video, names in videos.items()}
     elif estimate_with is not None:
         info["focal"] = focal.check_prior(db_path, estimate_with("", [n for n in images.names if n not in failed]))
+    priors = colmap.camera_priors(db_path)  # camera -> whether EXIF gave its focal length
+    info["num_cameras"] = len(priors)
     if camera_mode == "per_image":  # how many of the images' own cameras start from a guessed focal length
-        priors = colmap.camera_priors(db_path)
         info["cameras_guessed"] = [sum(not known for known in priors.values()), len(priors)]
     failed = {**odd, **failed}
     info.update(camera_mode=camera_mode, backend=conf.backend, features=h5_path.name,

@@ -341,7 +341,7 @@ def _new_info(out_dir: Path, info: dict[str, Any], digests: dict[str, str], extr
     skipped = {n: why for n, why in {**info.get("skipped", {}), **failed}.items() if n in digests and n not in counts}
     skipped.update({n: "not extracted (unreadable)" for n in digests if n not in counts and n not in skipped})
     return {**info, **extract.summarize(counts), "skipped": skipped, "images": digests, "time_s": elapsed,
-            "num_extracted": extracted}
+            "num_extracted": extracted, "num_cameras": len(colmap.camera_priors(work / extract.DB_NAME))}
 
 
 def _swap_in(out_dir: Path) -> None:

@@ -110,6 +110,18 @@ def update_summary(update: dict[str, Any]) -> str:
             f"kept, {update.get('num_pairs_dropped', 0)} dropped)")
 
 
+CAMERA_MODES = {"single": "one shared", "per_video": "one per video", "per_image": "one per image",
+                "per_folder": "one per folder"}
+
+
+def _cameras_note(extract_info: dict[str, Any]) -> str:
+    """`, 2 cameras (one per video)`: how the run's images share cameras (empty where not recorded)."""
+    num, mode = extract_info.get("num_cameras"), extract_info.get("camera_mode")
+    if num is None:
+        return ""
+    return f", {num} camera{'s' if num != 1 else ''} ({CAMERA_MODES.get(mode, mode)})"
+
+
 def render_report(report: RunReport) -> str:
     """A short human-readable summary of a run (Markdown)."""
     s = report.stages
@@ -117,7 +129,7 @@ def render_report(report: RunReport) -> str:
     added, before = pr.get("num_added_after_mapping", 0), pr.get("num_added_before_mapping", 0)
     rows = [
         [f"extract ({ex.get('backend', 'sift')})", f"{ex.get('time_s', 0):.1f}",
-         f"{ex.get('keypoints_mean', 0):.0f} keypoints per image"],
+         f"{ex.get('keypoints_mean', 0):.0f} keypoints per image" + _cameras_note(ex)],
         [f"pairs ({pr.get('method')})", f"{pr.get('time_s', 0):.1f}",
          f"{pr.get('num_pairs', 0)} pairs ({100 * pr.get('fraction_of_exhaustive', 0):.1f}% of exhaustive)"
          + (f", {before} of them added before mapping for weakly matched views" if before else "")

@@ -186,8 +186,8 @@ def open_video(path: Path) -> Iterator[Any]:
     if not capture.isOpened():
         if path.stat().st_size == 0:
             raise ValueError(f"cannot read the video {path}: empty file (0 bytes)")
-        raise ValueError(f"cannot read the video {path}: corrupt, truncated, or in a format OpenCV's FFmpeg cannot "
-                         "decode")
+        raise ValueError(f"cannot read the video {path}: corrupt, truncated, without a video stream (sound only), "
+                         "or in a format OpenCV's FFmpeg cannot decode")
     try:
         yield capture
     finally:
