@@ -182,8 +182,10 @@ def test_the_report_keeps_the_runs_advice_and_the_two_view_points(sara_run: Path
     data.run["stages"]["extract"]["cameras_guessed"] = [5, 5]
     data.run["stages"]["update"] = {"num_added": 0, "num_removed": 0, "num_changed": 0, "num_renamed": 2}
     data.run["stages"]["map"]["two_view_points"] = True
+    data.run["stages"]["extract"]["panoramas"] = data.run["stages"]["extract"]["num_images"]
     text = sections.advice(data)
     assert "<h2>Advice</h2>" in text and "5 of the 5 cameras" in text and "2 renamed" in text
+    assert "360-degree camera" in text
     assert ">points</th><td>those seen in two views only" in sections.reconstruction(data)
 
 

@@ -194,6 +194,26 @@ def test_a_run_with_starved_sift_records_and_prints_the_advice(synthetic_scene, 
     assert json.loads((out / "run.json").read_text())["stages"]["extract"]["low_texture"] is True
 
 
+def test_images_shaped_as_360_degree_panoramas_get_the_advice(synthetic_scene, tmp_path: Path):
+    """2:1 images, as a 360-degree camera writes them: the run says before matching that COLMAP's
+    cameras cannot describe them; 16:9 frames, and a few 2:1 images among others, are silent."""
+    from PIL import Image
+
+    from harness import run_redirected
+    from sara.pipeline import advice
+
+    assert advice.count_panoramas({"a": (5760, 2880), "b": (3841, 1920), "c": (3840, 2160), "d": (400, 200)}) == 2
+    assert advice.panoramas({"panoramas": 3, "num_images": 4}) and not advice.panoramas({"panoramas": 1,
+                                                                                         "num_images": 4})
+    images = tmp_path / "images"
+    images.mkdir()
+    for path in sorted(synthetic_scene[0].iterdir())[:4]:
+        Image.open(path).resize((1200, 600)).save(images / path.name)
+    result = run_redirected("pairs", images, tmp_path / "out", "-q", "--method", "exhaustive")
+    assert result.code == 0, result.err
+    assert "4 of the 4 images are twice as wide as high" in result.err and "360-degree camera" in result.err
+
+
 def test_images_of_their_own_guessed_cameras_get_the_advice(synthetic_scene, tmp_path: Path):
     """Photos of different sizes without EXIF: a camera each, each from a guessed focal length; the
     run says so before matching. One camera (same size) or cameras with EXIF focal lengths: silent."""

@@ -55,3 +55,26 @@ def warn_low_texture(extract_info: dict[str, Any], backend: str) -> str:
     if text:
         logger.warning(text)
     return text
+
+
+#: 360-degree cameras write equirectangular panoramas, twice as wide as high; smaller 2:1 images are rare
+PANORAMA_MIN_HEIGHT = 500
+
+
+def count_panoramas(sizes: dict[str, tuple[int, int]]) -> int:
+    """How many of the images (name -> (width, height)) are shaped as a 360-degree panorama: 2:1 to a
+    pixel, at least PANORAMA_MIN_HEIGHT high."""
+    return sum(abs(w - 2 * h) <= 1 and h >= PANORAMA_MIN_HEIGHT for w, h in sizes.values())
+
+
+def panoramas(extract_info: dict[str, Any]) -> str:
+    """A warning when most images look like 360-degree panoramas (`panoramas` in the extract info,
+    set by the run from the images' sizes): COLMAP's camera models cannot describe them."""
+    found, total = extract_info.get("panoramas", 0), extract_info.get("num_images", 0)
+    if not found or 2 * found < total:
+        return ""
+    return (f"{found} of the {total} images are twice as wide as high, as the equirectangular panoramas of a "
+            "360-degree camera are: COLMAP's camera models (pinhole, with radial distortion) cannot describe such "
+            "an image, and the model will be poor or split; cut each panorama into perspective views (the faces "
+            "of a cube, or the camera's own export of flat views) and run sara on those")
+

@@ -83,6 +83,9 @@ def _run_stages(conf: PipelineConfig, images: ImageSet, images_root: Path, out_d
         report.stages["extract"] = {**report.stages["extract"], "low_texture": True}
     if stop_after != "extract" and (guessed := advice.guessed_cameras(report.stages["extract"])):
         logger.warning(guessed)
+    report.stages["extract"] = {**report.stages["extract"], "panoramas": advice.count_panoramas(images.sizes)}
+    if stop_after != "extract" and (wide := advice.panoramas(report.stages["extract"])):
+        logger.warning(wide)
     if first_run or stop_after == "extract":
         report.save()  # `sara map OUT` finds the images through run.json
     if stop_after == "extract":

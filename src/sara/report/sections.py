@@ -276,11 +276,12 @@ def evaluation(data: RunData) -> str:
 
 
 def advice(data: RunData) -> str:
-    """What the run said before matching (SIFT starved; cameras from guessed focal lengths) and what an
-    update of the folder redid: the console's warnings, kept with the run."""
+    """What the run said before matching (SIFT starved; cameras from guessed focal lengths; 360-degree
+    panoramas) and what an update of the folder redid: the console's warnings, kept with the run."""
     extract = data.stages.get("extract", {})
     backend = str(data.run.get("config", {}).get("extract", {}).get("backend", "sift"))
-    notes = [text for text in (run_advice.low_texture(extract, backend), run_advice.guessed_cameras(extract)) if text]
+    notes = [text for text in (run_advice.low_texture(extract, backend), run_advice.guessed_cameras(extract),
+                               run_advice.panoramas(extract)) if text]
     update = data.stages.get("update")
     if isinstance(update, dict):
         notes.append(f"An update of a finished run: {update_summary(update)}")
