@@ -222,6 +222,21 @@ def test_phone_codecs_decode_and_a_stated_rotation_is_applied(tmp_path, codec, t
     assert np.abs(picked.astype(int) - expected.astype(int)).mean() < 12  # the same picture, lossy
 
 
+def test_videos_in_sub_folders_are_found_with_recursive(tmp_path):
+    """A phone's folders (DCIM/100APPLE, ...): with --recursive their videos are used; videos of one
+    name in two folders would give frames of one name, and are refused."""
+    folder = tmp_path / "DCIM"
+    (folder / "100APPLE").mkdir(parents=True)
+    (folder / "101APPLE").mkdir()
+    write_video(folder / "100APPLE" / "IMG_0001.avi", noise_frames(4, set(), seed=1))
+    write_video(folder / "101APPLE" / "IMG_0002.avi", noise_frames(4, set(), seed=2))
+    assert video.find_videos(folder) == []
+    assert [v.name for v in video.find_videos(folder, recursive=True)] == ["IMG_0001.avi", "IMG_0002.avi"]
+    write_video(folder / "101APPLE" / "IMG_0001.avi", noise_frames(4, set(), seed=3))
+    with pytest.raises(ValueError, match="several videos named IMG_0001"):
+        video.find_videos(folder, recursive=True)
+
+
 def test_frames_far_apart_by_default_are_said(tmp_path, caplog):
     """160 frames at 1 fps: the default 150 frames are a second apart or more: the run says how to pick
     closer ones; with the count given, or frames close enough, it says nothing."""

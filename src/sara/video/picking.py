@@ -137,8 +137,9 @@ class FrameSettings:
 
 def find_videos(source: Path, *, recursive: bool = False) -> list[Path]:
     """The videos that `sara run SOURCE` reconstructs from: [SOURCE] for a video file, the videos
-    of a folder that holds no image, or [] for a folder of images (or a missing path, which the
-    image scan reports). A file that is neither a video nor a folder is an error (ValueError)."""
+    of a folder that holds no image (and of its sub-folders, `recursive`), or [] for a folder of
+    images (or a missing path, which the image scan reports). A file that is neither a video nor a
+    folder is an error (ValueError)."""
     source = Path(source)
     if source.is_file():
         if source.suffix.lower() in VIDEO_EXTENSIONS:
@@ -147,8 +148,9 @@ def find_videos(source: Path, *, recursive: bool = False) -> list[Path]:
                          f"{', '.join(VIDEO_EXTENSIONS)})")
     if not source.is_dir():
         return []
-    videos = sorted(p for p in source.iterdir() if p.suffix.lower() in VIDEO_EXTENSIONS and p.is_file()
-                    and not p.name.startswith("."))
+    found = source.rglob("*") if recursive else source.iterdir()
+    videos = sorted(p for p in found if p.suffix.lower() in VIDEO_EXTENSIONS and p.is_file()
+                    and not any(part.startswith(".") for part in p.relative_to(source).parts))
     if videos and list_image_files(source, recursive=recursive):
         logger.warning("%s holds images and %d video(s): using the images; give a video, or a folder of videos "
                        "only, to use the videos", source, len(videos))
@@ -156,8 +158,8 @@ def find_videos(source: Path, *, recursive: bool = False) -> list[Path]:
     stems = [p.stem for p in videos]
     twins = sorted({s for s in stems if stems.count(s) > 1})
     if twins:
-        raise ValueError(f"{source} holds several videos named {twins[0]} (other extensions): their frames would "
-                         "get the same names; rename one")
+        raise ValueError(f"{source} holds several videos named {twins[0]} (other extensions or folders): their "
+                         "frames would get the same names; rename one")
     return videos
 
 
