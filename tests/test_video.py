@@ -442,6 +442,13 @@ def test_a_video_without_frames_and_a_file_of_unknown_kind_are_refused(tmp_path,
     assert result.code == 2 and "neither a folder of images nor a video" in result.error_lines[0], result.err
 
 
+def test_commands_that_take_images_only_point_a_video_to_sara_run(tmp_path, run_cli):
+    clip = write_video(tmp_path / "walk.avi", noise_frames(3, set()))
+    for command in ("extract", "pairs"):
+        result = run_cli(command, clip, tmp_path / "out")
+        assert result.code == 2 and "`sara run` also takes a video" in result.error_lines[0], result.err
+
+
 def test_frames_options_need_a_video(synthetic_scene, tmp_path, run_cli):
     images, _ = synthetic_scene
     result = run_cli("run", images, tmp_path / "out", "--frames", "5")

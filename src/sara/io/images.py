@@ -246,7 +246,8 @@ def list_image_files(root: Path, *, recursive: bool = False, out_dir: Path | Non
     if not root.exists():
         raise FileNotFoundError(f"image folder not found: {root}")
     if not root.is_dir():
-        raise NotADirectoryError(f"not a folder: {root} (give the folder that holds the images)")
+        raise NotADirectoryError(f"not a folder: {root} (give the folder that holds the images; of the commands, "
+                                 "`sara run` also takes a video)")
     files = _all_files(root, recursive, out_dir)
     copied = copied_extensions(files)
     names = []
