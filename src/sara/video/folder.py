@@ -28,9 +28,10 @@ def frames_for_run(videos: list[Path], out_dir: Path, settings: FrameSettings, *
     None): what `sara run VIDEO OUT` reconstructs from and is scored against.
 
     The frames are reused when `OUT/.sara/video.json` says the folder holds the frames of these
-    very videos and settings; otherwise they are picked (every frame written atomically, the record
-    marked complete only at the end). Raises OutputStateError (exit 3) when the folder holds frames
-    of other videos or settings, or files sara did not write; `overwrite` picks them again instead.
+    very videos and settings, those of each unchanged video when some changed; the others are picked
+    (every frame written atomically, the record marked complete only at the end). Raises
+    OutputStateError (exit 3) when the folder holds frames of other settings or of none of these
+    videos, or files sara did not write; `overwrite` picks them all again instead.
     """
     if gt_dir is not None and not Path(gt_dir).exists():  # before any decoding
         raise FileNotFoundError(f"ground-truth folder not found: {gt_dir}")
@@ -65,7 +66,7 @@ def _picked_frames(videos: list[Path], out_dir: Path, settings: FrameSettings, *
                 and len(kept) == len(identity):
             logger.info("reusing the %d frames picked (%s) in %s", _count(record), settings.flag(), folder)
             return folder
-    _clear(folder, record, keep=set(kept))
+    _clear(folder, record, keep={frame["name"] for entry in kept.values() for frame in entry["frames"]})
     folder.mkdir(parents=True, exist_ok=True)
     pending = {"version": RECORD_VERSION, "complete": False, "settings": settings.to_dict(),
                "videos_identity": identity, "videos": [kept[v.name] for v in videos if v.name in kept]}
@@ -163,14 +164,13 @@ def _foreign_files(folder: Path, record: dict[str, Any] | None) -> list[str]:
 
 
 def _clear(folder: Path, record: dict[str, Any] | None, *, keep: set[str] = frozenset()) -> None:
-    """Remove the frames (and temporary files) of `record` from `folder`, but those of the videos
-    `keep`; with no record, every file (`--overwrite`: the folder is sara's own)."""
+    """Remove the frames (and temporary files) of `record` from `folder`, but the frames `keep`
+    (names); with no record, every file (`--overwrite`: the folder is sara's own)."""
     if not folder.is_dir():
         return
-    ours, kept = _ours(record), _ours({"videos_identity": [{"name": n} for n in keep]}) if keep else None
+    ours = _ours(record)
     for path in folder.iterdir():
-        if (record is None or ours.match(path.name)) and not (kept and kept.match(path.name)
-                                                               and not path.name.startswith(".")):
+        if path.name not in keep and (record is None or ours.match(path.name)):
             if path.is_dir() and not path.is_symlink():
                 shutil.rmtree(path)
             else:
