@@ -268,6 +268,39 @@ def test_a_killed_decoding_is_redone_and_leaves_nothing_behind(tmp_path):
     assert json.loads((out / video.RECORD).read_text())["complete"]
 
 
+def test_an_unreadable_clip_in_a_folder_is_set_aside_and_not_tried_again(tmp_path, monkeypatch, caplog):
+    """A clip that cannot be read (a phone that died while filming) among good ones: set aside with one
+    warning, as an unreadable image is, and not decoded again while it stays as it is; mended, it is
+    picked. A single video, or a folder of only unreadable ones, is an error."""
+    folder = tmp_path / "videos"
+    folder.mkdir()
+    write_video(folder / "a.avi", noise_frames(4, set(), seed=1))
+    (folder / "b.mp4").write_bytes(b"not a video" * 100)
+    out, settings = tmp_path / "out", FrameSettings(frames=3)
+    with caplog.at_level("WARNING", logger="sara.video"):
+        frames_for_run(video.find_videos(folder), out, settings, progress=False)
+    assert "skipping the video b.mp4: cannot read the video" in caplog.text
+    assert sorted(p.name[0] for p in (out / "images").iterdir()) == ["a"] * 3
+    decoded = []
+    real = video.folder.decode_video
+    monkeypatch.setattr(video.folder, "decode_video", lambda clip, *a, **k: decoded.append(clip.name) or real(
+        clip, *a, **k))
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="sara.video"):
+        frames_for_run(video.find_videos(folder), out, settings, progress=False)
+    assert decoded == [] and "skipping the video b.mp4" in caplog.text  # said again, not tried again
+    (folder / "b.mp4").unlink()
+    write_video(folder / "b.avi", noise_frames(4, set(), seed=2))
+    frames_for_run(video.find_videos(folder), out, settings, progress=False)
+    assert decoded == ["b.avi"] and sum(p.name.startswith("b_") for p in (out / "images").iterdir()) == 3
+    bad = tmp_path / "bad"
+    bad.mkdir()
+    for name in ("x.mp4", "y.mp4"):
+        (bad / name).write_bytes(b"")
+    with pytest.raises(ValueError, match="none of the 2 videos could be read"):
+        frames_for_run(video.find_videos(bad), tmp_path / "out2", settings, progress=False)
+
+
 def test_a_decoding_killed_after_some_videos_keeps_their_frames(tmp_path, monkeypatch):
     """Killed while decoding the second video of a folder: the next run keeps the first's frames
     (not decoded again) and picks the second's again, its half-written frames gone."""

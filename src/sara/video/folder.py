@@ -52,6 +52,7 @@ def _picked_frames(videos: list[Path], out_dir: Path, settings: FrameSettings, *
     identity = [{"name": v.name, **identity_of(v)} for v in videos]
     record = None if overwrite else read_record(out_dir)
     kept = _reusable(record, identity, settings, folder)
+    unreadable = _still_unreadable(record, identity, settings)
     if not overwrite:
         before = [v for v in (record or {}).get("videos_identity") or [] if v in identity]
         if record is not None and (record.get("settings") != settings.to_dict() or not before):
@@ -63,13 +64,15 @@ def _picked_frames(videos: list[Path], out_dir: Path, settings: FrameSettings, *
                                    f"{foreign[0]}): use another output folder, or --overwrite to pick the frames "
                                    "again (it removes them)")
         if record is not None and record.get("complete") and record.get("videos_identity") == identity \
-                and len(kept) == len(identity):
+                and len(kept) + len(unreadable) == len(identity):
             logger.info("reusing the %d frames picked (%s) in %s", _count(record), settings.flag(), folder)
+            _say_unreadable(unreadable)
             return folder
     _clear(folder, record, keep={frame["name"] for entry in kept.values() for frame in entry["frames"]})
     folder.mkdir(parents=True, exist_ok=True)
     pending = {"version": RECORD_VERSION, "complete": False, "settings": settings.to_dict(),
-               "videos_identity": identity, "videos": [kept[v.name] for v in videos if v.name in kept]}
+               "videos_identity": identity, "videos": [kept[v.name] for v in videos if v.name in kept],
+               "unreadable": unreadable}
     write_json_atomic(out_dir / RECORD, pending)
     if kept and record is not None and record.get("complete"):
         logger.warning("videos: the frames of %d kept (%s), %d to pick; the run is updated for the frames added "
@@ -77,10 +80,21 @@ def _picked_frames(videos: list[Path], out_dir: Path, settings: FrameSettings, *
     elif kept:
         logger.info("the frames of %d video(s) picked before the run stopped are kept", len(kept))
     entries = []
-    for video in videos:
-        entries.append(kept.get(video.name) or decode_video(video, folder, settings, progress=progress))
-        pending["videos"] = entries + [kept[v.name] for v in videos[len(entries):] if v.name in kept]
+    for k, video in enumerate(videos):
+        if video.name in kept or video.name in unreadable:
+            entries += [kept[video.name]] if video.name in kept else []
+            continue
+        try:
+            entries.append(decode_video(video, folder, settings, progress=progress))
+        except ValueError as exc:  # a clip of a folder that cannot be read: set aside, as an unreadable image is
+            if len(videos) == 1:
+                raise
+            unreadable[video.name] = {"why": str(exc), **identity[k]}
+            _say_unreadable({video.name: unreadable[video.name]})
+        pending["videos"] = entries + [kept[v.name] for v in videos[k + 1:] if v.name in kept]
         write_json_atomic(out_dir / RECORD, pending)  # a kill loses the video being decoded, not those before
+    if not entries:
+        raise ValueError(f"none of the {len(videos)} videos could be read ({next(iter(unreadable.values()))['why']})")
     write_json_atomic(out_dir / RECORD, {**pending, "complete": True, "videos": entries})
     logger.info("%d frames picked from %d video(s) (%s) -> %s", sum(len(e["frames"]) for e in entries),
                 len(entries), settings.flag(), folder)
@@ -99,6 +113,21 @@ def _reusable(record: dict[str, Any] | None, identity: list[dict[str, Any]], set
     entries = {e.get("name"): e for e in record.get("videos", [])}
     return {v["name"]: entries[v["name"]] for v in identity
             if before.get(v["name"]) == v and v["name"] in entries and _frames_present([entries[v["name"]]], folder)}
+
+
+def _still_unreadable(record: dict[str, Any] | None, identity: list[dict[str, Any]],
+                     settings: FrameSettings) -> dict[str, dict[str, Any]]:
+    """The videos of `identity` that `record` found unreadable, unchanged since: not tried again."""
+    if record is None or record.get("settings") != settings.to_dict():
+        return {}
+    before = record.get("unreadable") or {}
+    return {v["name"]: before[v["name"]] for v in identity
+            if v["name"] in before and {k: before[v["name"]].get(k) for k in v} == v}
+
+
+def _say_unreadable(unreadable: dict[str, dict[str, Any]]) -> None:
+    for name, info in unreadable.items():
+        logger.warning("skipping the video %s: %s", name, info["why"])
 
 
 def _say_spacing(entries: list[dict[str, Any]]) -> None:
