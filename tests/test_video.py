@@ -403,6 +403,10 @@ def test_clips_of_two_sizes_get_a_camera_each_and_one_model(video_scene, tmp_pat
     record = json.loads((out / "run.json").read_text())
     assert record["stages"]["extract"]["camera_mode"] == "per_video"
     assert "2 cameras (one per video)" in (out / "report.md").read_text()
+    assert "Frames: 8 frames picked from 2 videos (--frames 4): a.avi 4 of 4, b.avi 4 of 4" in \
+        (out / "report.md").read_text()
+    assert record["stages"]["video"]["videos"][1] == {"name": "b.avi", "num_frames": 4, "num_picked": 4, "num_flat": 0}
+    assert ">frames</th><td>8 frames picked from 2 videos" in (out / "report.html").read_text()
     with sqlite3.connect(out / "database.db") as con:
         rows = con.execute("SELECT i.name, c.width, c.height, c.camera_id FROM images i JOIN cameras c "
                            "USING (camera_id)").fetchall()

@@ -110,6 +110,20 @@ def update_summary(update: dict[str, Any]) -> str:
             f"kept, {update.get('num_pairs_dropped', 0)} dropped)")
 
 
+def frames_summary(stage: dict[str, Any]) -> str:
+    """`52 frames picked from 2 videos (--frames 26): a.mp4 26 of 26, ...` (`stages.video` of run.json)."""
+    videos = stage.get("videos") or []
+    text = (f"{sum(v.get('num_picked', 0) for v in videos)} frames picked from {len(videos)} video"
+            f"{'s' if len(videos) != 1 else ''}" + (f" ({stage['settings']})" if stage.get("settings") else "") + ": "
+            + ", ".join(f"{v.get('name')} {v.get('num_picked', 0)} of {v.get('num_frames', 0)}" for v in videos))
+    flat = sum(v.get("num_flat", 0) for v in videos)
+    if flat:
+        text += f"; {flat} frames without texture (black, one colour) passed over"
+    if stage.get("unreadable"):
+        text += f"; set aside, unreadable: {', '.join(stage['unreadable'])}"
+    return text
+
+
 CAMERA_MODES = {"single": "one shared", "per_video": "one per video", "per_image": "one per image",
                 "per_folder": "one per folder"}
 
@@ -143,6 +157,8 @@ def render_report(report: RunReport) -> str:
     lines = [f"# sara run: {report.out_dir.name}", "",
              f"Images: {s['images']['num_images']} used, {s['images']['num_skipped']} skipped "
              f"(from `{report.images_root}`)", "", markdown_table(["stage", "time (s)", "result"], rows)]
+    if s.get("video"):
+        lines[3:3] = ["", f"Frames: {frames_summary(s['video'])}"]
     update = s.get("update")
     if update:
         lines += ["", f"Update: {update_summary(update)}"]

@@ -78,6 +78,8 @@ def _run_stages(conf: PipelineConfig, images: ImageSet, images_root: Path, out_d
     images = extract.usable(images, out_dir)
     report = RunReport(out_dir, images_root, conf.to_dict(), skipped_images=images.skipped)
     report.stages["images"] = {"num_images": len(images.names), "num_skipped": len(images.skipped)}
+    if groups:  # the frames of a video run: where they came from
+        report.stages["video"] = video.summary(out_dir)
     report.stages["extract"] = records.done_info(out_dir, extract.STAGE)  # its time_s: when it really ran
     if stop_after != "extract" and advice.warn_low_texture(report.stages["extract"], conf.extract.backend):
         report.stages["extract"] = {**report.stages["extract"], "low_texture": True}

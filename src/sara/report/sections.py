@@ -15,7 +15,7 @@ from .. import colmap
 from ..export import FORMATS
 from ..io.pairs import Pair
 from ..pipeline import advice as run_advice
-from ..pipeline.record import time_notes, update_summary
+from ..pipeline.record import frames_summary, time_notes, update_summary
 from . import SELECTED_ROLES, RunData, Scores
 from .markup import esc, fmt, section, table
 from .svg import histogram_svg, node_positions, role_order, role_swatch, top_down_svg, view_graph_svg
@@ -233,6 +233,8 @@ def reconstruction(data: RunData) -> str:
     if data.stages.get("map", {}).get("two_view_points"):
         rows.append(("points", "those seen in two views only triangulated too: without them no model could be "
                      "built (map.two_view_points)"))
+    if data.stages.get("video"):
+        rows.append(("frames", esc(frames_summary(data.stages["video"]))))
     left_out = [n for n in data.names if n not in set(m.names)]
     if left_out:
         shown = ", ".join(esc(n) for n in left_out[:20]) + (" ..." if len(left_out) > 20 else "")

@@ -15,7 +15,7 @@ frames of the others are kept; other settings, or no video in common, are refuse
 frames folder of a run and its record.
 """
 
-from .folder import FRAMES_GT, RECORD, camera_groups, frames_for_run, frames_ground_truth, read_record
+from .folder import FRAMES_GT, RECORD, camera_groups, frames_for_run, frames_ground_truth, read_record, summary
 from .picking import (
     DEFAULT_FRAMES,
     FLAT_CONTRAST,
@@ -37,4 +37,4 @@ from .picking import (
 __all__ = ["DEFAULT_FRAMES", "FLAT_CONTRAST", "FRAMES_GT", "RECORD", "SHARPNESS_SIDE_PX", "SHARP_ENOUGH",
            "SPARSE_SPACING_S", "VIDEO_EXTENSIONS", "FrameSettings", "camera_groups", "decode_video", "find_videos",
            "frame_name", "frames_for_run", "frames_ground_truth", "laplacian_sharpness", "open_video", "pick_sharp",
-           "pick_textured", "read_record", "window_bounds"]
+           "pick_textured", "read_record", "summary", "window_bounds"]

@@ -160,6 +160,21 @@ def camera_groups(out_dir: Path, images_root: Path) -> dict[str, str]:
     return {frame["name"]: entry["name"] for entry in record.get("videos", []) for frame in entry.get("frames", [])}
 
 
+def summary(out_dir: Path) -> dict[str, Any] | None:
+    """Where the frames of a video run came from (`stages.video` of run.json): the settings, and for
+    each video its frames, those picked and those passed over as flat; the videos set aside."""
+    record = read_record(out_dir)
+    if not record or not record.get("complete"):
+        return None
+    try:
+        flag = FrameSettings(**record["settings"]).flag()
+    except (KeyError, TypeError, ValueError):
+        flag = ""
+    videos = [{"name": e.get("name"), "num_frames": e.get("num_frames"), "num_picked": len(e.get("frames", [])),
+               "num_flat": e.get("num_flat", 0)} for e in record.get("videos", [])]
+    return {"settings": flag, "videos": videos, "unreadable": sorted(record.get("unreadable") or {})}
+
+
 def _difference(record: dict[str, Any], identity: list[dict[str, Any]], settings: FrameSettings,
                 folder: Path) -> str:
     """What differs between the frames of `folder` and what this run asks for, in one clause."""
