@@ -14,7 +14,8 @@ import h5py
 import numpy as np
 from tqdm import tqdm
 
-from . import colmap
+from . import colmap, overlay
+from .cameras import resolve_camera_mode, share_per_video
 from .config import ExtractConfig
 from .execute import Beside, Executor, SerialExecutor, for_device, single_threaded_torch_in_worker
 from .features import Keypoints, LocalFeatures, features_file_name, make_backend
@@ -33,41 +34,6 @@ DB_NAME = "database.db"
 
 class OutputMismatchError(OutputStateError, ValueError):
     """An output folder holds results made from other inputs or settings."""
-
-
-def resolve_camera_mode(images: ImageSet, conf: ExtractConfig, groups: dict[str, str] | None = None) -> str:
-    """`auto`: one shared camera when every image has the same size and the same EXIF camera (make,
-    model and focal length, or no EXIF at all, as frames of one video); one camera per video
-    (`per_video`) for frames of several videos (`groups`: frame -> its video), which may come from
-    other phones or the same phone turned; else one camera per image: photos of the same size from
-    different phones must not share intrinsics."""
-    if conf.camera_mode != "auto":
-        if conf.camera_mode not in ("single", "per_image", "per_folder"):
-            raise ValueError(f"unknown camera_mode {conf.camera_mode!r}; choose auto, single, per_image or "
-                             "per_folder")
-        return conf.camera_mode
-    if groups and len({groups.get(n) for n in images.names}) > 1:
-        return "per_video"
-    sizes = {images.sizes[n] for n in images.names}
-    if len(sizes) > 1:
-        return "per_image"
-    cameras = {image_files.exif_camera(images.root / n) for n in images.names}
-    return "single" if len(cameras) == 1 else "per_image"
-
-
-def share_per_video(db_path: Path, images: ImageSet, groups: dict[str, str]) -> dict[str, list[str]]:
-    """One camera for the frames of each video (of each size, should a video change size); returns
-    video -> its frames in the database."""
-    by_video: dict[tuple, list[str]] = {}
-    kept = colmap.images_with_keypoints(db_path)
-    for name in images.names:
-        if name in kept:
-            by_video.setdefault((groups.get(name, name), images.sizes[name]), []).append(name)
-    colmap.share_cameras(db_path, list(by_video.values()))
-    out: dict[str, list[str]] = {}
-    for (video, _), names in by_video.items():
-        out.setdefault(video, []).extend(names)
-    return out
 
 
 #: settings added after outputs existed, with their defaults: at that default they stay out of the
@@ -167,6 +133,7 @@ def run(conf: ExtractConfig, images: ImageSet, out_dir: Path, *, executor: Execu
             )
         colmap.remove_database(db_path)
         h5_path.unlink(missing_ok=True)
+        (out_dir / ".sara" / overlay.CELLS_NAME).unlink(missing_ok=True)  # found in features made before
         _partial(h5_path).unlink(missing_ok=True)
     save_digests_()
     records.mark_started(out_dir, STAGE, key)
@@ -195,6 +162,7 @@ def run(conf: ExtractConfig, images: ImageSet, out_dir: Path, *, executor: Execu
         estimate_with = (lambda group, names: partial(focal.estimate_from_features, h5_path, names)) \
             if wants_focal else None
     info = summarize(counts)
+    info["static_keypoints"] = overlay.remove_static(db_path, h5_path, images, out_dir / ".sara")
     if groups is not None:
         videos = share_per_video(db_path, images, groups)
         if estimate_with is not None:

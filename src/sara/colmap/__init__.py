@@ -46,7 +46,7 @@ from .database_queries import (
     verified_graph,
     verified_inliers,
 )
-from .edit import delete_images, prune_model, share_cameras
+from .edit import delete_images, keep_keypoints, prune_model, share_cameras
 from .geometry import (
     CameraInfo,
     colmap_to_hloc_keypoints,
@@ -114,6 +114,7 @@ __all__ = [
     "image_read_problem",
     "image_to_normalized",
     "images_with_keypoints",
+    "keep_keypoints",
     "import_images",
     "incremental_mapping",
     "load_poses",

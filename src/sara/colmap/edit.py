@@ -1,6 +1,6 @@
 """Taking images out of a database and out of a model, for an incremental update of an output
 folder (images removed from the collection, or changed and extracted again); images made to share
-one camera.
+one camera; keypoints taken out (an overlay's, before matching).
 
 COLMAP's database tables have no cascade for matches (they are keyed by pair id), and pycolmap's
 `Database` has no call that deletes an image, so the rows go through SQLite in one transaction:
@@ -11,8 +11,10 @@ an id of a deleted image is never given to another one.
 from __future__ import annotations
 
 import sqlite3
+from collections.abc import Callable
 from pathlib import Path
 
+import numpy as np
 import pycolmap
 
 #: COLMAP's pair id of two image ids: smaller * 2^31 - 1 + larger (`pycolmap.image_pair_to_pair_id`)
@@ -90,6 +92,39 @@ def share_cameras(db_path: Path, groups: list[list[str]]) -> int:
                     _delete_unused_camera(con, camera_id)
                     changed += 1
             return changed
+    finally:
+        con.close()
+
+
+def keep_keypoints(db_path: Path, static: Callable[[str, np.ndarray], np.ndarray | None]) -> int:
+    """Take out of every image's keypoints (and descriptors, where the database holds them) those
+    that `static(name, xy)` marks (xy: (N, 2) in COLMAP's pixel convention; a boolean mask, or None
+    for none), in one transaction; for images not matched yet. Returns the keypoints taken out."""
+    con = sqlite3.connect(str(db_path))
+    removed = 0
+    try:
+        with con:  # one transaction: all or nothing
+            images = con.execute("SELECT image_id, name FROM images JOIN keypoints USING (image_id)").fetchall()
+            for image_id, name in images:
+                rows, cols, data = con.execute("SELECT rows, cols, data FROM keypoints WHERE image_id = ?",
+                                               (image_id,)).fetchone()
+                if not rows:
+                    continue
+                kp = np.frombuffer(data, np.float32).reshape(rows, cols)
+                drop = static(name, kp[:, :2])
+                if drop is None or not drop.any():
+                    continue
+                keep = ~drop
+                con.execute("UPDATE keypoints SET rows = ?, data = ? WHERE image_id = ?",
+                            (int(keep.sum()), np.ascontiguousarray(kp[keep]).tobytes(), image_id))
+                found = con.execute("SELECT rows, cols, data FROM descriptors WHERE image_id = ?",
+                                    (image_id,)).fetchone()
+                if found and found[0] == rows:
+                    desc = np.frombuffer(found[2], np.uint8).reshape(found[0], found[1])
+                    con.execute("UPDATE descriptors SET rows = ?, data = ? WHERE image_id = ?",
+                                (int(keep.sum()), np.ascontiguousarray(desc[keep]).tobytes(), image_id))
+                removed += int(drop.sum())
+        return removed
     finally:
         con.close()
 
