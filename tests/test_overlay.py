@@ -75,6 +75,31 @@ def test_an_overlay_burned_into_the_frames_is_taken_out_before_matching(syntheti
     assert again["num_keypoints"] == 0 and again["num_cells"] == found["num_cells"]
 
 
+def test_frames_added_later_lose_the_overlay_the_first_run_found(tmp_path, run_cli):
+    """Two frames added to a folder whose first run found an overlay: the update takes the same
+    cells' keypoints out of them (the first run's cells, kept in .sara)."""
+    from sara.synthetic import make_scene
+
+    scene, _ = make_scene(tmp_path / "scene", num_images=12, width=800, height=600)
+    images = _with_overlay(scene, tmp_path / "all")
+    first = tmp_path / "first"
+    first.mkdir()
+    for path in sorted(images.iterdir())[:10]:
+        (first / path.name).write_bytes(path.read_bytes())
+    out = tmp_path / "out"
+    assert run_cli("extract", first, out, "-q").code == 0
+    for path in sorted(images.iterdir())[10:]:
+        (first / path.name).write_bytes(path.read_bytes())
+    result = run_cli("extract", first, out, "-q")
+    assert result.code == 0, result.err
+    h5_kp, db_rows = _keypoints(out)
+    assert len(h5_kp) == 12 and {n: len(kp) for n, kp in h5_kp.items()} == db_rows
+    with np.load(out / ".sara" / overlay.CELLS_NAME) as saved:
+        grid = saved["800x600"]
+    for name in sorted(h5_kp)[10:]:
+        assert not grid.reshape(-1)[overlay._cells(h5_kp[name], 800, 600)].any(), name
+
+
 def test_frames_without_an_overlay_keep_every_keypoint(synthetic_scene, tmp_path):
     from sara import extract
     from sara.config import ExtractConfig

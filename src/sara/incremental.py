@@ -31,7 +31,7 @@ from typing import Any
 
 import h5py
 
-from . import colmap, extract
+from . import colmap, extract, overlay
 from .colmap.model import write_model
 from .config import ExtractConfig
 from .execute import Executor
@@ -287,6 +287,8 @@ def _update_copies(conf: ExtractConfig, images: ImageSet, out_dir: Path, change:
     if grouped:
         extract.share_per_video(db, come, grouped)
     _write_features(out_dir, conf, images, change, extracted)
+    if (out_dir / ".sara" / overlay.CELLS_NAME).exists():  # the overlay the first run found: out of these too
+        overlay.remove_static(db, work / features_file_name(conf), come, out_dir / ".sara")
     return len(come.names) - len(failed), failed  # over every attempt: a killed update resumed counts them once
 
 
