@@ -100,16 +100,12 @@ def test_frames_added_later_lose_the_overlay_the_first_run_found(tmp_path, run_c
         assert not grid.reshape(-1)[overlay._cells(h5_kp[name], 800, 600)].any(), name
 
 
-def test_frames_without_an_overlay_keep_every_keypoint(synthetic_scene, tmp_path):
+def test_frames_without_an_overlay_keep_every_keypoint(scene_features):
     from sara import extract
-    from sara.config import ExtractConfig
     from sara.io import records
-    from sara.io.images import scan_images
 
-    out = tmp_path / "out"
-    extract.run(ExtractConfig(num_threads=2), scan_images(synthetic_scene[0], progress=False), out, progress=False)
-    assert records.done_info(out, extract.STAGE)["static_keypoints"] == {"num_cells": 0, "num_keypoints": 0,
-                                                                         "num_images": 0}
+    assert records.done_info(scene_features, extract.STAGE)["static_keypoints"] == {
+        "num_cells": 0, "num_keypoints": 0, "num_images": 0}
 
 
 @pytest.mark.slow
