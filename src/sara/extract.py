@@ -159,10 +159,11 @@ def run(conf: ExtractConfig, images: ImageSet, out_dir: Path, *, executor: Execu
         counts, failed = extract_to_h5(backend, conf, images, h5_path, executor, progress)
         kept = set_aside(images, failed).names
         import_keypoints(db_path, h5_path, kept)
-        estimate_with = (lambda group, names: partial(focal.estimate_from_features, h5_path, names)) \
-            if wants_focal else None
+        estimate_with = _from_features(h5_path) if wants_focal else None
     info = summarize(counts)
     info["static_keypoints"] = overlay.remove_static(db_path, h5_path, images, out_dir / ".sara")
+    if info["static_keypoints"]["num_keypoints"] and estimate_with is not None:  # fitted with an overlay's matches
+        estimate_with = _from_features(h5_path)
     if groups is not None:
         videos = share_per_video(db_path, images, groups)
         if estimate_with is not None:
@@ -180,6 +181,11 @@ def run(conf: ExtractConfig, images: ImageSet, out_dir: Path, *, executor: Execu
                 settings=settings_of(conf), images=digests, usable_key=key_without(set(failed)))
     records.mark_done(out_dir, STAGE, key, info, outputs=recorded(db_path, h5_path))
     return h5_path
+
+
+def _from_features(h5_path: Path) -> Callable[[str, list[str]], Callable]:
+    """The focal check of a group of images from their features in `h5_path` (as they are now)."""
+    return lambda group, names: partial(focal.estimate_from_features, h5_path, names)
 
 
 def _extract_sift(backend: ColmapSift, db_path: Path, h5_path: Path, images: ImageSet, camera_mode: str,
