@@ -416,11 +416,9 @@ def test_clips_of_two_sizes_get_a_camera_each_and_one_model(video_scene, tmp_pat
     assert record["stages"]["map"]["num_registered"] == 8, record["stages"]["map"]
 
 
-def test_a_folder_of_videos_that_changes_is_an_update(video_scene, tmp_path, run_cli):
-    """A clip added to a folder of videos: only it is decoded, the frames of the others stay as they
-    were, and the run is updated for the frames added (their own camera)."""
-    import sqlite3
-
+def _first_run_on_two_clips(video_scene, tmp_path, run_cli) -> tuple[list[np.ndarray], Path, Path]:
+    """(the scene's frames, a folder of clips a.avi (frames 0-3) and b.avi (2-5), its run folder) after
+    a first `sara run` on the folder."""
     clip, _ = video_scene
     with video.open_video(clip) as capture:
         frames = [frame for ok, frame in iter(capture.read, (False, None)) if ok]
@@ -429,6 +427,15 @@ def test_a_folder_of_videos_that_changes_is_an_update(video_scene, tmp_path, run
     write_video(clips / "a.avi", frames[:4])
     write_video(clips / "b.avi", frames[2:])
     assert run_cli("run", clips, out, "--frames", "4", "-q", "--workers", "1").code == 0
+    return frames, clips, out
+
+
+def test_a_folder_of_videos_that_changes_is_an_update(video_scene, tmp_path, run_cli):
+    """A clip added to a folder of videos: only it is decoded, the frames of the others stay as they
+    were, and the run is updated for the frames added (their own camera)."""
+    import sqlite3
+
+    frames, clips, out = _first_run_on_two_clips(video_scene, tmp_path, run_cli)
 
     def state() -> tuple[dict[str, int], dict[str, int]]:
         with sqlite3.connect(out / "database.db") as con:
@@ -453,16 +460,9 @@ def test_a_folder_of_videos_that_changes_is_an_update(video_scene, tmp_path, run
 def test_a_clip_taken_from_a_folder_of_videos_is_an_update(video_scene, tmp_path, run_cli):
     """A clip taken away: its frames go, and the run is updated for the frames removed. Slow, out of
     the default suite: once in the full suite (of about twenty runs of this path) the update ended
-    in "internal error: IndexError: unordered_map::at", not reproduced in 30 runs alone, under load
+    in "internal error: IndexError: unordered_map::at", not reproduced in 41 runs alone, under load
     or not (lab/notes/VIDEO.md); kept here to catch it."""
-    clip, _ = video_scene
-    with video.open_video(clip) as capture:
-        frames = [frame for ok, frame in iter(capture.read, (False, None)) if ok]
-    clips, out = tmp_path / "clips", tmp_path / "out"
-    clips.mkdir()
-    write_video(clips / "a.avi", frames[:4])
-    write_video(clips / "b.avi", frames[2:])
-    assert run_cli("run", clips, out, "--frames", "4", "-q", "--workers", "1").code == 0
+    frames, clips, out = _first_run_on_two_clips(video_scene, tmp_path, run_cli)
     write_video(clips / "c.avi", [np.ascontiguousarray(np.rot90(f, k=-1)) for f in frames[1:5]])
     assert run_cli("run", clips, out, "--frames", "4", "-q", "--workers", "1").code == 0  # an update: c added
     (clips / "b.avi").unlink()
