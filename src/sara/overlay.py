@@ -171,23 +171,20 @@ def remove_static(db_path: Path, h5_path: Path, images: ImageSet, state_dir: Pat
             return {"num_cells": 0, "num_keypoints": 0, "num_images": 0}
 
         def static(name: str, xy: np.ndarray) -> np.ndarray | None:
-            grid = grids.get("{}x{}".format(*images.sizes.get(name, (0, 0))))
-            if grid is None or not len(xy):
-                return None
-            w, h = grid.shape[1] * CELL_PX, grid.shape[0] * CELL_PX
-            return grid.reshape(-1)[_cells(xy, w, h)]
+            size = images.sizes.get(name)
+            grid = grids.get("{}x{}".format(*size)) if size else None
+            return grid.reshape(-1)[_cells(xy, *size)] if grid is not None and len(xy) else None
 
         touched = 0
         for name in images.names:
-            if has_features(h5, name):
+            drop = static(name, h5[name]["keypoints"][()]) if has_features(h5, name) else None
+            if drop is not None and drop.any():  # only then the descriptors are read and written again
                 feats = read_open(h5, name)
-                drop = static(name, feats.keypoints)
-                if drop is not None and drop.any():
-                    keep = ~drop
-                    feats.keypoints, feats.descriptors, feats.scores = (
-                        feats.keypoints[keep], feats.descriptors[keep], feats.scores[keep])
-                    write_features(h5, name, feats)
-                    touched += 1
+                keep = ~drop
+                feats.keypoints, feats.descriptors, feats.scores = (
+                    feats.keypoints[keep], feats.descriptors[keep], feats.scores[keep])
+                write_features(h5, name, feats)
+                touched += 1
     removed = colmap.keep_keypoints(db_path, lambda name, xy: static(name, np.asarray(xy) - 0.5))
     cells = int(sum(int(g.sum()) for g in grids.values()))
     logger.warning("features that stay put on the same pixels of %d images (an overlay: a clock, a speed, a logo "

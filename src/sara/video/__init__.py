@@ -27,7 +27,7 @@ from .picking import (
     decode_video,
     find_videos,
     frame_name,
-    laplacian_sharpness,
+    frame_scores,
     open_video,
     pick_sharp,
     pick_textured,
@@ -36,5 +36,5 @@ from .picking import (
 
 __all__ = ["DEFAULT_FRAMES", "FLAT_CONTRAST", "FRAMES_GT", "RECORD", "SHARPNESS_SIDE_PX", "SHARP_ENOUGH",
            "SPARSE_SPACING_S", "VIDEO_EXTENSIONS", "FrameSettings", "camera_groups", "decode_video", "find_videos",
-           "frame_name", "frames_for_run", "frames_ground_truth", "laplacian_sharpness", "open_video", "pick_sharp",
+           "frame_name", "frames_for_run", "frames_ground_truth", "frame_scores", "open_video", "pick_sharp",
            "pick_textured", "read_record", "summary", "window_bounds"]

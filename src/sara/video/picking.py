@@ -69,15 +69,10 @@ def pick_sharp(sharpness: np.ndarray, num_picks: int) -> list[int]:
     return picks
 
 
-def laplacian_sharpness(frame: np.ndarray) -> float:
-    """Variance of the Laplacian of a frame's grey image (BGR or grey uint8, downscaled to at most
-    SHARPNESS_SIDE_PX a side): higher is sharper."""
-    return frame_scores(frame)[0]
-
-
 def frame_scores(frame: np.ndarray) -> tuple[float, float]:
-    """(sharpness: `laplacian_sharpness`, contrast: the standard deviation of the grey levels) of
-    a frame, from one grey image downscaled to at most SHARPNESS_SIDE_PX a side."""
+    """(sharpness: the variance of the Laplacian of the frame's grey image, higher is sharper;
+    contrast: the standard deviation of its grey levels), from one grey image (BGR or grey uint8)
+    downscaled to at most SHARPNESS_SIDE_PX a side."""
     import cv2
 
     grey = cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY) if frame.ndim == 3 else frame
