@@ -344,3 +344,32 @@ def test_removing_a_checkpoint_removes_those_derived_from_it_and_nothing_else(tm
         (tmp_path / name).mkdir()
     base.remove()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["ckpt2", "other"]
+
+
+@pytest.mark.parametrize("direct_up_to", [None, 5000])  # COLMAP's own loop, and sara's step-by-step one
+def test_a_view_left_without_verified_pairs_is_taken_out_of_the_model_continued(database, tmp_path, caplog,
+                                                                                 direct_up_to):
+    """An update took away the images a view was matched with: COLMAP loads no view without verified
+    pairs, and continuing a model that still holds one failed (IndexError: unordered_map::at)."""
+    import shutil
+    import sqlite3
+
+    from sara.colmap import sfm
+
+    images = database.parent / "images"
+    full = stepwise.incremental_mapping(database, images, tmp_path / "full", _options(), direct_up_to=5000)[0]
+    alone = sorted(full.reg_image_ids())[7]
+    shutil.copy(database, tmp_path / "database.db")
+    with sqlite3.connect(tmp_path / "database.db") as con:
+        for table in ("matches", "two_view_geometries"):
+            con.execute(f"DELETE FROM {table} WHERE pair_id / 2147483647 = ? OR pair_id % 2147483647 = ?",
+                        (alone, alone))
+    with caplog.at_level("WARNING", logger="sara.colmap.sfm"):
+        continued = sfm.incremental_mapping(tmp_path / "database.db", images, tmp_path / "more", seed=0,
+                                            min_model_size=3, abs_pose_min_num_inliers=30,
+                                            abs_pose_min_inlier_ratio=0.25, num_threads=1,
+                                            input_path=tmp_path / "full" / "0", direct_solver_up_to=direct_up_to)
+    rec = continued.reconstructions[0]
+    assert rec.num_reg_images() == 19 and alone not in rec.reg_image_ids()
+    assert "1 of the 20 views of the model continued have no verified pair left" in caplog.text
+    assert not list(tmp_path.glob(".start-*"))  # the trimmed copy is gone

@@ -6,6 +6,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
+import tempfile
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -14,7 +15,8 @@ import pycolmap
 
 from . import stepwise
 from .consistency import Agreement, agreement
-from .database_queries import database_images
+from .database_queries import database_images, verified_inliers
+from .edit import prune_model
 from .native import native_errors
 
 logger = logging.getLogger(__name__)
@@ -104,7 +106,8 @@ def incremental_mapping(
     opts.random_seed = seed
     opts.mapper.random_seed = seed
     opts.triangulation.random_seed = seed
-    with native_errors("map the matches (incremental mapper)", Path(out_dir)):
+    with native_errors("map the matches (incremental mapper)", Path(out_dir)), \
+            _mappable_start(Path(db_path), input_path, opts.min_num_matches, Path(out_dir)) as input_path:
         if direct_solver_up_to is not None or first_image is not None:
             first_id = None if first_image is None else database_images(Path(db_path))[first_image]
             return MappedModels(stepwise.incremental_mapping(
@@ -115,6 +118,32 @@ def incremental_mapping(
             input_path=str(input_path) if input_path is not None else "",
             next_image_callback=on_next_image,
         ))
+
+
+@contextlib.contextmanager
+def _mappable_start(db_path: Path, input_path: Path | None, min_num_matches: int, out_dir: Path):
+    """The model to continue from: `input_path`, or a copy of it without the views that the mapper
+    cannot hold, those left with no verified pair of `min_num_matches` inliers in the database (their
+    pairs went with images removed by an update, or were not selected again). COLMAP leaves such a
+    view out of what it loads from the database, and continuing a model that holds it fails on a
+    lookup by its id (IndexError: unordered_map::at). None (map from scratch) when fewer than two
+    views stay; the copy is deleted on exit."""
+    if input_path is None:
+        yield None
+        return
+    linked = {name for pair in verified_inliers(db_path, min_num_matches) for name in pair}
+    rec = pycolmap.Reconstruction(str(input_path))
+    lost = {image.name for image in rec.images.values() if image.has_pose and image.name not in linked}
+    if not lost:
+        yield input_path
+        return
+    out_dir.parent.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(prefix=".start-", dir=out_dir.parent) as tmp:
+        left = prune_model(Path(input_path), lost, Path(tmp))
+        logger.warning("map: %d of the %d views of the model continued have no verified pair left (%s): "
+                       "left out of it%s", len(lost), rec.num_reg_images(), ", ".join(sorted(lost)[:3]) +
+                       (", ..." if len(lost) > 3 else ""), "" if left >= 2 else "; too few views stay: mapped anew")
+        yield Path(tmp) if left >= 2 else None
 
 
 def global_mapping(db_path: Path, image_dir: Path, out_dir: Path, *, seed: int,
