@@ -2,18 +2,19 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
 from PIL import Image
 
+from sara.cameras import ExifCamera, camera_sharing, exif_camera, resolve_camera_mode
 from sara.config import ExtractConfig
-from sara.extract import resolve_camera_mode
-from sara.io.images import exif_camera, scan_images
+from sara.io.images import scan_images
 
 
 def _photo(path: Path, size=(64, 48), make: str | None = None, model: str | None = None,
-           focal: float | None = None) -> None:
+           focal: float | None = None, focal_35mm: int | None = None) -> None:
     image = Image.fromarray(np.random.default_rng(0).integers(0, 255, (size[1], size[0], 3), dtype=np.uint8))
     exif = Image.Exif()
     if make:
@@ -22,6 +23,8 @@ def _photo(path: Path, size=(64, 48), make: str | None = None, model: str | None
         exif[0x0110] = model
     if focal:
         exif.get_ifd(0x8769)[0x920A] = focal
+    if focal_35mm:
+        exif.get_ifd(0x8769)[0xA405] = focal_35mm
     image.save(path, exif=exif.tobytes())
 
 
@@ -32,16 +35,70 @@ def _mode(folder: Path) -> str:
 def test_exif_camera_reads_make_model_and_focal(tmp_path: Path):
     _photo(tmp_path / "a.jpg", make="Apple", model="iPhone 13", focal=5.1)
     _photo(tmp_path / "b.jpg")
-    assert exif_camera(tmp_path / "a.jpg") == ("Apple", "iPhone 13", 5.1)
-    assert exif_camera(tmp_path / "b.jpg") == (None, None, None)
-    assert exif_camera(tmp_path / "missing.jpg") == (None, None, None)
+    assert exif_camera(tmp_path / "a.jpg") == ExifCamera("Apple", "iPhone 13", 5.1, None)
+    nothing = ExifCamera(None, None, None, None)
+    assert exif_camera(tmp_path / "b.jpg") == exif_camera(tmp_path / "missing.jpg") == nothing
 
 
-def test_same_size_photos_of_two_phones_get_a_camera_each(tmp_path: Path):
+def test_photos_of_a_few_phones_get_a_camera_per_phone_held_each_way(tmp_path: Path):
+    """Two phones of one resolution must not share intrinsics, but the photos of one phone do; held
+    upright its photos have another size (a camera of their own), zoomed another field of view."""
     for k in range(3):
         _photo(tmp_path / f"a{k}.jpg", make="Apple", model="iPhone 13", focal=5.1)
         _photo(tmp_path / f"b{k}.jpg", make="Google", model="Pixel 7", focal=5.1)
+    _photo(tmp_path / "a_upright.jpg", size=(48, 64), make="Apple", model="iPhone 13", focal=5.1)
+    _photo(tmp_path / "a_zoomed.jpg", make="Apple", model="iPhone 13", focal=5.1, focal_35mm=52)
+    _photo(tmp_path / "no_exif.jpg")
+    mode, groups = camera_sharing(scan_images(tmp_path, progress=False), ExtractConfig())
+    assert mode == "per_exif"
+    together = sorted(sorted(n for n in groups if groups[n] == g) for g in set(groups.values()))
+    assert together == [["a0.jpg", "a1.jpg", "a2.jpg"], ["a_upright.jpg"], ["a_zoomed.jpg"],
+                        ["b0.jpg", "b1.jpg", "b2.jpg"]]  # and no_exif.jpg a camera of its own
+    assert camera_sharing(scan_images(tmp_path, progress=False), ExtractConfig(camera_mode="per_image")) \
+        == ("per_image", None)
+
+
+def test_photos_that_share_no_phone_get_a_camera_each(tmp_path: Path):
+    _photo(tmp_path / "a.jpg", make="Apple", model="iPhone 13", focal=5.1)
+    _photo(tmp_path / "b.jpg", make="Google", model="Pixel 7", focal=5.1)
+    _photo(tmp_path / "c.jpg", size=(64, 64))
+    _photo(tmp_path / "d.jpg", size=(64, 64))  # no EXIF: nothing says these two are one camera
     assert _mode(tmp_path) == "per_image"
+
+
+def test_a_photo_added_later_joins_its_phones_camera(synthetic_scene, tmp_path: Path, run_cli):
+    """The photos of two phones, extracted with a camera per phone; one more photo of the first
+    phone added to the folder: the update gives it that phone's camera."""
+    import sqlite3
+
+    images, _ = synthetic_scene
+    folder = tmp_path / "photos"
+    folder.mkdir()
+    paths = sorted(images.iterdir())
+    phone = {p.stem + ".jpg": ("Apple", "iPhone 13") if k % 2 == 0 else ("Google", "Pixel 7")
+             for k, p in enumerate(paths)}
+
+    def copy(path: Path) -> None:
+        make, model = phone[path.stem + ".jpg"]
+        with Image.open(path) as im:
+            exif = Image.Exif()
+            exif[0x010F], exif[0x0110] = make, model
+            exif.get_ifd(0x8769)[0x920A] = 5.1
+            im.convert("RGB").save(folder / (path.stem + ".jpg"), quality=95, exif=exif.tobytes())
+
+    for path in paths[1:]:
+        copy(path)
+    out = tmp_path / "out"
+    assert run_cli("extract", folder, out, "-q").code == 0
+    copy(paths[0])
+    result = run_cli("extract", folder, out, "-q")
+    assert result.code == 0, result.err
+    with sqlite3.connect(out / "database.db") as con:
+        cameras = dict(con.execute("SELECT name, camera_id FROM images"))
+    assert len(cameras) == len(paths) and len(set(cameras.values())) == 2
+    assert all((cameras[a] == cameras[b]) == (phone[a] == phone[b]) for a in cameras for b in cameras)
+    record = json.loads((out / "run.json").read_text())
+    assert record["stages"]["extract"]["camera_mode"] == "per_exif"
 
 
 def test_one_camera_video_frames_and_different_sizes(tmp_path: Path):

@@ -1,39 +1,96 @@
-"""How the images of a run share cameras: the rule of `camera_mode=auto`, and one camera for the
-frames of each video of a folder of clips."""
+"""How the images of a run share cameras: the rule of `camera_mode=auto`, one camera for the frames
+of each video of a folder of clips, and one for the photos of each phone of a collection."""
 
 from __future__ import annotations
 
 from pathlib import Path
+from typing import NamedTuple
 
 from . import colmap
 from .config import ExtractConfig
-from .io import images as image_files
 from .io.images import ImageSet
+
+#: the camera modes that import a camera per image, then give each group of images one camera
+GROUPED_MODES = ("per_video", "per_exif")
+
+
+class ExifCamera(NamedTuple):
+    """What EXIF says of the camera of a photo; each None where absent or unreadable."""
+
+    make: str | None
+    model: str | None
+    focal_mm: float | None
+    focal_35mm: float | None  # FocalLengthIn35mmFilm: changes with a phone's digital zoom, the mm do not
+
+    def complete(self) -> bool:
+        """Whether it names one camera and lens setting: make, model and focal length."""
+        return bool(self.make and self.model and self.focal_mm)
+
+
+def exif_camera(path: Path) -> ExifCamera:
+    """The EXIF camera of the image at `path` (all None without EXIF, or for a file it cannot read)."""
+    from PIL import Image
+
+    try:
+        with Image.open(path) as im:
+            exif = im.getexif()
+            sub = exif.get_ifd(0x8769)
+            make, model = exif.get(0x010F), exif.get(0x0110)
+            focal, focal_35 = sub.get(0x920A) or exif.get(0x920A), sub.get(0xA405) or exif.get(0xA405)
+    except Exception:  # noqa: BLE001 - EXIF is optional; any failure means "no EXIF"
+        return ExifCamera(None, None, None, None)
+
+    def number(value: object) -> float | None:
+        try:
+            return float(value) if value else None
+        except (TypeError, ValueError, ZeroDivisionError):
+            return None
+
+    def text(value: object) -> str | None:
+        return str(value).strip("\x00 ").strip() or None if value else None
+
+    return ExifCamera(text(make), text(model), number(focal), number(focal_35))
 
 
 def resolve_camera_mode(images: ImageSet, conf: ExtractConfig, groups: dict[str, str] | None = None) -> str:
-    """`auto`: one shared camera when every image has the same size and the same EXIF camera (make,
-    model and focal length, or no EXIF at all, as frames of one video); one camera per video
-    (`per_video`) for frames of several videos (`groups`: frame -> its video), which may come from
-    other phones or the same phone turned; else one camera per image: photos of the same size from
-    different phones must not share intrinsics."""
+    """The camera mode of `camera_sharing`."""
+    return camera_sharing(images, conf, groups)[0]
+
+
+def camera_sharing(images: ImageSet, conf: ExtractConfig,
+                   videos: dict[str, str] | None = None) -> tuple[str, dict[str, str] | None]:
+    """(camera mode, image -> its group for the grouped modes). `auto`: one shared camera when every
+    image has the same size and the same EXIF camera (make, model and focal lengths, or no EXIF at
+    all, as frames of one video); one camera per video (`per_video`) for frames of several videos
+    (`videos`: frame -> its video), which may come from other phones or the same phone turned; one
+    camera per phone (`per_exif`) for photos whose EXIF names their camera (make, model, focal
+    length) when some of them share one and a size (a few phones, a phone held both ways); else one
+    camera per image: photos of the same size from different phones must not share intrinsics."""
     if conf.camera_mode != "auto":
         if conf.camera_mode not in ("single", "per_image", "per_folder"):
             raise ValueError(f"unknown camera_mode {conf.camera_mode!r}; choose auto, single, per_image or "
                              "per_folder")
-        return conf.camera_mode
-    if groups and len({groups.get(n) for n in images.names}) > 1:
-        return "per_video"
-    sizes = {images.sizes[n] for n in images.names}
-    if len(sizes) > 1:
-        return "per_image"
-    cameras = {image_files.exif_camera(images.root / n) for n in images.names}
-    return "single" if len(cameras) == 1 else "per_image"
+        return conf.camera_mode, None
+    if videos and len({videos.get(n) for n in images.names}) > 1:
+        return "per_video", videos
+    exif = {n: exif_camera(images.root / n) for n in images.names}
+    if len({images.sizes[n] for n in images.names}) == 1 and len(set(exif.values())) == 1:
+        return "single", None
+    phones = {n: _phone_key(cam, images.sizes[n]) for n, cam in exif.items() if cam.complete()}
+    if len(phones) - len(set(phones.values())) > 0:  # two photos or more from one phone held one way
+        return "per_exif", phones
+    return "per_image", None
 
 
-def share_per_video(db_path: Path, images: ImageSet, groups: dict[str, str]) -> dict[str, list[str]]:
-    """One camera for the frames of each video (of each size, should a video change size); returns
-    video -> its frames in the database."""
+def _phone_key(camera: ExifCamera, size: tuple[int, int]) -> str:
+    zoom = f", {camera.focal_35mm:g} mm in 35 mm" if camera.focal_35mm else ""
+    return f"{camera.make} {camera.model}, {camera.focal_mm:g} mm{zoom}, {size[0]}x{size[1]}"
+
+
+def share_per_group(db_path: Path, images: ImageSet, groups: dict[str, str]) -> dict[str, list[str]]:
+    """One camera for the images of each group (`groups`: image -> its video, or its phone; of each
+    size, should a video change size); an image without a group keeps its own. Returns group -> its
+    images in the database."""
     by_video: dict[tuple, list[str]] = {}
     kept = colmap.images_with_keypoints(db_path)
     for name in images.names:

@@ -15,7 +15,7 @@ import numpy as np
 from tqdm import tqdm
 
 from . import colmap, overlay
-from .cameras import resolve_camera_mode, share_per_video
+from .cameras import GROUPED_MODES, camera_sharing, share_per_group
 from .config import ExtractConfig
 from .execute import Beside, Executor, SerialExecutor, for_device, single_threaded_torch_in_worker
 from .features import Keypoints, LocalFeatures, features_file_name, make_backend
@@ -137,14 +137,13 @@ def run(conf: ExtractConfig, images: ImageSet, out_dir: Path, *, executor: Execu
         _partial(h5_path).unlink(missing_ok=True)
     save_digests_()
     records.mark_started(out_dir, STAGE, key)
-    camera_mode = resolve_camera_mode(images, conf, camera_groups)
-    importing = "per_image" if camera_mode == "per_video" else camera_mode  # then shared per video below
+    camera_mode, groups = camera_sharing(images, conf, camera_groups)
+    importing = "per_image" if camera_mode in GROUPED_MODES else camera_mode  # then shared per group below
     # where one camera's intrinsics hold for every image, those of another size cannot be theirs
     one = "--camera-mode single" if camera_mode == "single" else "extract.camera_params" if conf.camera_params else ""
     odd = image_files.other_sizes(images, one) if one else {}
     images = set_aside(images, odd)
     wants_focal = conf.estimate_focal and camera_mode in ("single", "per_video") and not conf.camera_params
-    groups = camera_groups if camera_mode == "per_video" else None
     if hasattr(backend, "extract_to_database"):  # the focal check's pairs fitted during the extraction
         counts, failed, fundamentals = _extract_sift(backend, db_path, h5_path, images, importing, wants_focal,
                                                      progress, groups)
@@ -165,15 +164,15 @@ def run(conf: ExtractConfig, images: ImageSet, out_dir: Path, *, executor: Execu
     if info["static_keypoints"]["num_keypoints"] and estimate_with is not None:  # fitted with an overlay's matches
         estimate_with = _from_features(h5_path)
     if groups is not None:
-        videos = share_per_video(db_path, images, groups)
-        if estimate_with is not None:
+        videos = share_per_group(db_path, images, groups)
+        if estimate_with is not None:  # frames of videos: photos' groups have EXIF focal lengths
             info["focal_per_video"] = {video: focal.check_prior(db_path, estimate_with(video, names), names, video)
                                        for video, names in videos.items()}
     elif estimate_with is not None:
         info["focal"] = focal.check_prior(db_path, estimate_with("", [n for n in images.names if n not in failed]))
     priors = colmap.camera_priors(db_path)  # camera -> whether EXIF gave its focal length
     info["num_cameras"] = len(priors)
-    if camera_mode == "per_image":  # how many of the images' own cameras start from a guessed focal length
+    if camera_mode in ("per_image", "per_exif"):  # how many of their cameras start from a guessed focal length
         info["cameras_guessed"] = [sum(not known for known in priors.values()), len(priors)]
     failed = {**odd, **failed}
     info.update(camera_mode=camera_mode, backend=conf.backend, features=h5_path.name,

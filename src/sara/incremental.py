@@ -32,6 +32,7 @@ from typing import Any
 import h5py
 
 from . import colmap, extract, overlay
+from .cameras import camera_sharing, share_per_group
 from .colmap.model import write_model
 from .config import ExtractConfig
 from .execute import Executor
@@ -158,10 +159,12 @@ def update_features(conf: ExtractConfig, images: ImageSet, out_dir: Path, *, exe
     tic = time.perf_counter()
     change = compare(old_digests, digests, across_folders=_across_folders(info))
     grouped = camera_groups if conf.camera_mode == "auto" and camera_groups else None
+    if info.get("camera_mode") == "per_exif":  # a new photo joins its phone's camera
+        grouped = camera_sharing(images, conf)[1]
     extracted, failed = _update_copies(conf, images, out_dir, change, info, executor, progress, grouped)
     colmap.copy_database(_work(out_dir) / extract.DB_NAME, _work(out_dir) / MATCHED_NAME)
     new_info = _new_info(out_dir, info, digests, extracted, failed, time.perf_counter() - tic)
-    if grouped and len(set(grouped.values())) > 1:
+    if camera_groups and grouped and len(set(grouped.values())) > 1:
         new_info["camera_mode"] = "per_video"
     current.update(phase="swap", num_extracted=extracted, extract_time_s=time.perf_counter() - tic,
                    extract_info=new_info)
@@ -284,8 +287,8 @@ def _update_copies(conf: ExtractConfig, images: ImageSet, out_dir: Path, change:
         extracted = {"path": added_h5, "names": done}
         extract.import_keypoints(db, added_h5, done)
     set_aside(come, failed)  # one warning each
-    if grouped:
-        extract.share_per_video(db, come, grouped)
+    if grouped:  # the new images' groups, those of kept images too: the camera of a group's oldest image
+        share_per_group(db, images, grouped)
     _write_features(out_dir, conf, images, change, extracted)
     if (out_dir / ".sara" / overlay.CELLS_NAME).exists():  # the overlay the first run found: out of these too
         overlay.remove_static(db, work / features_file_name(conf), come, out_dir / ".sara")

@@ -407,28 +407,6 @@ def _recode(src: Path, dst: Path, *, rotate: bool, as_jpeg: bool) -> tuple[int, 
         return pixels.size
 
 
-def exif_camera(path: Path) -> tuple[str | None, str | None, float | None]:
-    """(make, model, focal length in mm) from EXIF, each None where absent or unreadable."""
-    from PIL import Image
-
-    try:
-        with Image.open(path) as im:
-            exif = im.getexif()
-            make, model = exif.get(0x010F), exif.get(0x0110)
-            focal = exif.get_ifd(0x8769).get(0x920A) or exif.get(0x920A)
-    except Exception:  # noqa: BLE001 - EXIF is optional; any failure means "no EXIF"
-        return None, None, None
-    try:
-        focal_mm = float(focal) if focal else None
-    except (TypeError, ValueError, ZeroDivisionError):
-        focal_mm = None
-
-    def text(value: object) -> str | None:
-        return str(value).strip("\x00 ").strip() or None if value else None
-
-    return text(make), text(model), focal_mm
-
-
 def load_image(path: Path, max_size: int) -> tuple[np.ndarray, tuple[float, float]]:
     """(H, W, 3) uint8 RGB pixels as stored (no EXIF rotation, like COLMAP), the longer side at most
     `max_size`; and the (x, y) factors that take its pixel coordinates back to the full image."""

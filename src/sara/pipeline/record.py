@@ -125,7 +125,7 @@ def frames_summary(stage: dict[str, Any]) -> str:
 
 
 CAMERA_MODES = {"single": "one shared", "per_video": "one per video", "per_image": "one per image",
-                "per_folder": "one per folder"}
+                "per_folder": "one per folder", "per_exif": "one per phone, by EXIF"}
 
 
 def _cameras_note(extract_info: dict[str, Any]) -> str:
