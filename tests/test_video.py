@@ -153,6 +153,35 @@ def test_a_video_that_fades_in_gives_no_black_frame(tmp_path):
     entry = video.decode_video(clip, tmp_path / "frames", FrameSettings(frames=4), progress=False)
     assert entry["num_flat"] == 4 and len(entry["frames"]) == 4
     assert min(f["index"] for f in entry["frames"]) >= 4
+    assert entry["readings"] == 2  # the windows of the first reading held the black frames
+    assert sorted(p.name for p in (tmp_path / "frames").iterdir()) == [f["name"] for f in entry["frames"]]
+
+
+@pytest.mark.parametrize("seed", range(40))
+def test_the_frames_written_in_one_reading_are_the_picks(seed):
+    """`OnePass` writes, window by window, what `pick_sharp` picks from all the scores, holding a few
+    frames at most: steady sharpness (ties included), blurred frames, a sharpening or blurring run."""
+    rng = np.random.default_rng(seed)
+    num = int(rng.integers(1, 400))
+    kind = seed % 4
+    sharpness = (np.round(rng.uniform(95, 100, num)) if kind == 0 else rng.uniform(0, 100, num) if kind == 1
+                 else np.linspace(10, 100, num) if kind == 2 else np.abs(np.linspace(-100, 100, num)) + 1)
+    picks = int(rng.integers(1, num + 1))
+    written, most = {}, 0
+
+    def write(index, frame):
+        assert frame == index  # the frame offered with that index
+        return index
+
+    one_pass = video.picking.OnePass(window_bounds(num, picks), write)
+    for index, value in enumerate(sharpness):
+        one_pass.offer(index, float(value), index)
+        most = max(most, len(one_pass.held))
+    written = one_pass.written
+    expected = pick_sharp(sharpness, picks)
+    assert set(written) <= set(expected) and most <= one_pass.MAX_HELD
+    if kind < 2:  # a window that sharpens or blurs steadily may hold too many: a second reading writes its pick
+        assert sorted(written) == expected
 
 
 @pytest.mark.parametrize("stated", [0, 6, 10])
@@ -167,6 +196,7 @@ def test_a_wrong_frame_count_in_the_container_picks_with_the_true_count(tmp_path
     (tmp_path / "images").mkdir()
     entry = video.decode_video(clip, tmp_path / "images", FrameSettings(frames=3), progress=False)
     assert [f["index"] for f in entry["frames"]] == [0, 2, 5] and entry["num_frames"] == 6
+    assert entry["readings"] == (1 if stated == 6 else 2)  # the stated count right: read once
     assert sorted(p.name for p in (tmp_path / "images").iterdir()) == [f["name"] for f in entry["frames"]]
     assert [f["time_s"] for f in entry["frames"]] == [0.0, 0.5, 1.25]
 

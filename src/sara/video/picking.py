@@ -206,9 +206,11 @@ def _write_png(frame: np.ndarray, path: Path) -> int:
 def decode_video(video: Path, folder: Path, settings: FrameSettings, *, progress: bool = True) -> dict[str, Any]:
     """Pick the frames of one video and write them into `folder`; returns the video's record entry.
 
-    Two passes: the first scores every frame (and counts them: the count a container states is an
-    estimate in some formats), the second writes the frames picked. Keeping the candidates of a
-    window in memory instead would cost a window of full-size frames.
+    One reading scores every frame and counts them, and writes the picks of even windows over the
+    frame count the container states as it goes (`OnePass`). The picks are then those of
+    `pick_textured` on every frame's scores; where they differ from the frames written (the count
+    was an estimate, some frames were flat, a window held too many candidates), the frames written
+    that are not picks are deleted and a second reading writes the picks missing.
     """
     import cv2
 
@@ -217,12 +219,17 @@ def decode_video(video: Path, folder: Path, settings: FrameSettings, *, progress
         stated = int(capture.get(cv2.CAP_PROP_FRAME_COUNT))
         fps = float(capture.get(cv2.CAP_PROP_FPS) or 0.0)
         size = (int(capture.get(cv2.CAP_PROP_FRAME_WIDTH)), int(capture.get(cv2.CAP_PROP_FRAME_HEIGHT)))
-        for frame in tqdm(_frames(capture), total=stated if stated > 0 else None, desc=f"score frames of {video.name}",
-                          unit="frame", disable=not progress):
+        one_pass = OnePass(window_bounds(stated, settings.num_picks(stated, fps, video.name)),
+                           lambda index, frame: _write_png(frame, folder / frame_name(video.stem, index, stated))) \
+            if stated > 0 else None
+        for index, frame in enumerate(tqdm(_frames(capture), total=stated if stated > 0 else None,
+                                           desc=f"read frames of {video.name}", unit="frame", disable=not progress)):
             scores = frame_scores(frame)
             sharpness.append(scores[0])
             contrast.append(scores[1])
             times.append(capture.get(cv2.CAP_PROP_POS_MSEC) / 1000.0)
+            if one_pass is not None:
+                one_pass.offer(index, scores[0], frame)
     if not sharpness:
         raise ValueError(f"cannot read the video {video}: no frame could be decoded")
     num_frames = len(sharpness)
@@ -231,14 +238,61 @@ def decode_video(video: Path, folder: Path, settings: FrameSettings, *, progress
     if flat:
         logger.info("%s: %d of its %d frames have no texture (black or one colour: a fade, a lens cap): the frames "
                     "are picked among the others", video.name, flat, num_frames)
-    written = _write_frames(video, folder, picks, num_frames, progress=progress)
+    written = {} if one_pass is None else one_pass.written
+    for index in list(written):  # not a pick after all, or named for another count of frames
+        if index not in picks or frame_name(video.stem, index, stated) != frame_name(video.stem, index, num_frames):
+            (folder / frame_name(video.stem, index, stated)).unlink(missing_ok=True)
+            del written[index]
+    missing = [index for index in picks if index not in written]
+    if missing:
+        written.update(_write_frames(video, folder, missing, num_frames, progress=progress))
     entry = {"name": video.name, "path": str(video.resolve()), **identity_of(video), "num_frames": num_frames,
-             "num_flat": flat, "fps": fps, "width": size[0], "height": size[1], "frames": []}
+             "num_flat": flat, "fps": fps, "width": size[0], "height": size[1], "readings": 2 if missing else 1,
+             "frames": []}
     for index in picks:
         entry["frames"].append({"name": frame_name(video.stem, index, num_frames), "index": index,
                                 "time_s": round(times[index], 6), "sharpness": round(sharpness[index], 3),
                                 "bytes": written[index]})
     return entry
+
+
+class OnePass:
+    """The picks of `pick_sharp` over the windows `bounds`, written while the frames go by in order.
+
+    Of the frames of the current window only those that could still be its pick are held: a frame
+    is passed over once another of the window is at least as sharp and nearer its middle (or as near
+    and earlier), as that one is then picked before it whatever comes later, or once it is under
+    SHARP_ENOUGH of the window's sharpest so far, as it cannot be sharp again. When the window ends
+    its pick is written (`write(index, frame)` -> bytes). A window whose frames would hold more than
+    MAX_HELD in memory at once writes nothing (a second reading does)."""
+
+    #: the most frames of one window held at once: in a steady video a few are (sharpness varies by a
+    #: few percent from frame to frame); a 4K frame takes 25 MB
+    MAX_HELD = 8
+
+    def __init__(self, bounds: np.ndarray, write: Callable[[int, np.ndarray], int]) -> None:
+        self.bounds, self.write = [int(b) for b in bounds], write
+        self.window, self.held, self.best, self.overflow = 0, [], 0.0, False
+        self.written: dict[int, int] = {}  # frame index -> bytes written
+
+    def offer(self, index: int, sharpness: float, frame: np.ndarray) -> None:
+        while self.window + 1 < len(self.bounds) and index >= self.bounds[self.window + 1]:
+            self.window, self.held, self.best, self.overflow = self.window + 1, [], 0.0, False
+        if self.window + 1 >= len(self.bounds):
+            return  # beyond the frames the container stated
+        lo, hi = self.bounds[self.window], self.bounds[self.window + 1]
+        distance = abs(index - lo - (hi - lo - 1) / 2)
+        self.best = max(self.best, sharpness)
+        if not self.overflow and not any(d <= distance and s >= sharpness for d, s, _, _ in self.held):
+            self.held = [h for h in self.held if not (distance < h[0] and sharpness >= h[1])  # passed over
+                         and h[1] >= SHARP_ENOUGH * self.best] + [(distance, sharpness, index, frame)]  # sharp
+            if len(self.held) > self.MAX_HELD:
+                self.held, self.overflow = [], True
+        if index == hi - 1 and self.held:
+            _, _, pick, chosen = min((h for h in self.held if h[1] >= SHARP_ENOUGH * self.best),
+                                     key=lambda h: (h[0], h[2]))
+            self.written[pick] = self.write(pick, chosen)
+            self.held = []
 
 
 def _frames(capture: Any) -> Iterator[np.ndarray]:
