@@ -6,6 +6,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+import pytest
 from PIL import Image
 
 from sara.cameras import ExifCamera, camera_sharing, exif_camera, resolve_camera_mode
@@ -157,3 +158,31 @@ def test_frames_of_several_videos_get_a_camera_per_video(tmp_path: Path):
     assert resolve_camera_mode(images, ExtractConfig(), groups) == "per_video"
     assert resolve_camera_mode(images, ExtractConfig(), dict.fromkeys(images.names, "a.mp4")) == "single"
     assert resolve_camera_mode(images, ExtractConfig(camera_mode="single"), groups) == "single"  # as asked
+
+
+@pytest.mark.parametrize("name, orientation, rotate", [("IMG_0001.HEIC", 1, False), ("IMG_0002.jpg", 6, True)])
+def test_copies_keep_the_exif_camera(tmp_path: Path, name, orientation, rotate):
+    """Photos COLMAP cannot read (an iPhone's HEIC) and photos turned upright are read from copies:
+    the copies keep the EXIF camera, so COLMAP's focal prior and the camera per phone still hold."""
+    from sara import colmap
+    from sara.io.images import upright_copy
+
+    if name.endswith(".HEIC"):
+        pytest.importorskip("pillow_heif", reason="pillow-heif is not installed (pip install 'sara[heic]')") \
+            .register_heif_opener()
+    folder = tmp_path / "photos"
+    folder.mkdir()
+    exif = Image.Exif()
+    exif[0x010F], exif[0x0110], exif[0x0112] = "Apple", "iPhone 13", orientation
+    exif.get_ifd(0x8769)[0x920A], exif.get_ifd(0x8769)[0xA405] = 5.1, 26
+    pixels = np.random.default_rng(0).integers(0, 255, (48, 64, 3), dtype=np.uint8)
+    Image.fromarray(pixels).save(folder / name, format="HEIF" if rotate is False else "JPEG", exif=exif.tobytes())
+    images = scan_images(folder, progress=False)
+    copies = upright_copy(images, tmp_path / "copies", rotate=rotate, progress=False)
+    assert exif_camera(copies.root / name) == ExifCamera("Apple", "iPhone 13", 5.1, 26)
+    with Image.open(copies.root / name) as im:
+        assert im.size == ((48, 64) if rotate else (64, 48)) and im.getexif().get(0x0112, 1) == 1
+    colmap.create_database(tmp_path / "database.db")
+    colmap.import_images(tmp_path / "database.db", copies.root, [name], camera_mode="per_image",
+                         camera_model="SIMPLE_RADIAL")
+    assert list(colmap.camera_priors(tmp_path / "database.db").values()) == [True]  # EXIF gave the focal length

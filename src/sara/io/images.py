@@ -394,15 +394,20 @@ def upright_copy(images: ImageSet, folder: Path, *, rotate: bool = True, progres
 
 def _recode(src: Path, dst: Path, *, rotate: bool, as_jpeg: bool) -> tuple[int, int]:
     """Write the pixels of `src` to `dst` (upright with `rotate`; JPEG whatever the name with
-    `as_jpeg`: COLMAP's reader goes by the content); returns their (width, height)."""
+    `as_jpeg`: COLMAP's reader goes by the content) with its EXIF (the camera and focal length that
+    COLMAP's prior and the cameras' sharing read; the orientation tag gone where turned upright);
+    returns their (width, height)."""
     from PIL import Image, ImageOps
 
     with Image.open(src) as im:
+        exif = im.getexif()
         pixels = ImageOps.exif_transpose(im) if rotate else im
         if as_jpeg and pixels.mode not in ("RGB", "L"):
             pixels = pixels.convert("RGB")
+        if rotate:
+            exif.pop(0x0112, None)
         tmp = dst.with_name(f".{dst.name}.tmp{dst.suffix}")
-        pixels.save(tmp, format="JPEG" if as_jpeg else None, quality=95)
+        pixels.save(tmp, format="JPEG" if as_jpeg else None, quality=95, **({"exif": exif.tobytes()} if exif else {}))
         tmp.replace(dst)
         return pixels.size
 
