@@ -171,9 +171,44 @@ def test_low_texture_is_said_before_matching_with_the_backend_to_try():
     guessed = {"prior_px": 384.0, "estimated_px": 80.0, "applied": False, "sound": False}
     text = advice.low_texture({"num_images": 47, "keypoints_mean": 211.0, "focal": guessed}, "sift")
     assert "camera is a guess (focal length 384 px" in text and "extract.camera_params" in text
-    assert "-s map.refine_distortion=false" in text
+    assert "map.hold_distortion_starved" in text and "-s map.refine_distortion=false" in text
     applied = {**guessed, "estimated_px": 1500.0, "applied": True}
     assert "a guess" not in advice.low_texture({"num_images": 47, "keypoints_mean": 211.0, "focal": applied}, "sift")
+
+
+def test_starved_means_few_sift_keypoints_and_a_camera_guessed():
+    from sara.pipeline import advice
+
+    few, many = {"num_images": 47, "keypoints_mean": 211.0}, {"num_images": 47, "keypoints_mean": 4000.0}
+    assert advice.starved(few, "sift", [False]) and advice.starved(few, "sift", [True, False])
+    assert not advice.starved(few, "sift", [True, True])  # EXIF or camera_params gave every focal length
+    assert not advice.starved(many, "sift", [False]) and not advice.starved(few, "aliked", [False])
+
+
+def test_a_starved_capture_is_mapped_with_the_distortion_held_from_the_start(synthetic_scene, tmp_path: Path,
+                                                                            monkeypatch):
+    """A capture without EXIF whose SIFT keypoints count as starved (the bar raised above the
+    synthetic scene's count: its rendered points give no matches at a few hundred keypoints): the
+    first mapping holds the lens distortion and says so; with the option off it is refined."""
+    import json
+
+    from harness import run_redirected
+    from sara import mapping
+    from sara.pipeline import advice
+
+    monkeypatch.setattr(advice, "LOW_TEXTURE_KEYPOINTS", 100_000)
+    refined, real_map = [], mapping._map
+    monkeypatch.setattr(mapping, "_map", lambda conf, *a, **k: refined.append(conf.refine_distortion) or real_map(
+        conf, *a, **k))
+    images, _ = synthetic_scene
+    for setting, held in (("true", True), ("false", False)):
+        out = tmp_path / setting
+        result = run_redirected("run", images, out, "-q", "-s", f"map.hold_distortion_starved={setting}")
+        assert result.code == 0, result.err
+        assert refined[0] is not held  # the first mapping; the rounds' continue as it did
+        assert ("the lens distortion is held while mapping" in result.err) is held
+        assert json.loads((out / "run.json").read_text())["stages"]["map"]["distortion_held"] is held
+        refined.clear()
 
 
 def test_a_run_with_starved_sift_records_and_prints_the_advice(synthetic_scene, tmp_path: Path):

@@ -38,13 +38,16 @@ CHECKPOINT = "map-checkpoint"
 
 def run(conf: MapConfig, db_path: Path, images_root: Path, out_dir: Path, *, seed: int = 0,
         upstream_key: str = "", progress: bool = True, min_num_inliers: int = 15,
-        commit: Callable[[], None] | None = None, overwrite: bool = False, input_model: Path | None = None) -> Path:
+        commit: Callable[[], None] | None = None, overwrite: bool = False, input_model: Path | None = None,
+        starved: bool = False) -> Path:
     """Map the matched database into `out_dir/sparse/N`; returns `sparse/` (component sizes and the
     time taken go into the stage record). With `input_model` (incremental mapper only) the mapper
     continues from that model instead of starting from scratch.
 
     `commit`, when given, runs once the new model exists (or the current one is up to date), just
     before it is swapped in: the pipeline moves the matches it was built from into place there.
+    `starved`: the features starved and a camera is a guess (`pipeline.advice.starved`); with
+    `conf.hold_distortion_starved` a first mapping holds the distortion from the start.
     """
     out_dir = Path(out_dir)
     sparse = out_dir / "sparse"
@@ -59,7 +62,11 @@ def run(conf: MapConfig, db_path: Path, images_root: Path, out_dir: Path, *, see
     # the incremental mapper continues its own models, and those it built for a contradicted global one
     extend = input_model is not None and "incremental" in (conf.mapper, _mapped_by(previous))
     earlier = ((previous or {}).get("info") or {}) if extend else {}
-    held = bool(earlier.get("distortion_held"))
+    held = bool(earlier.get("distortion_held")) if extend else \
+        starved and conf.hold_distortion_starved and conf.refine_distortion
+    if held and not extend:
+        logger.warning("map: the lens distortion is held while mapping: few keypoints per image and a guessed "
+                       "camera do not pin it down (map.hold_distortion_starved)")
     conf = replace(conf, refine_distortion=conf.refine_distortion and not held,  # as the model continued was mapped
                    two_view_points=conf.two_view_points or bool(earlier.get("two_view_points")))
     records.mark_started(out_dir, STAGE, key)

@@ -191,6 +191,12 @@ class MapConfig:
         in one model. true: a first model that
         holds under half the views the verified pairs join is mapped again with it held, and that
         mapping is kept (and its continuations hold it) when its largest model holds more views.""")
+    hold_distortion_starved: bool = option(True, flag(), """Incremental mapper: where SIFT starved (under 500
+        keypoints per image on average) and a camera's focal length is a guess (no EXIF, no camera_params),
+        hold the distortion from the first mapping on, as the retry above holds it, and refine it in the
+        rounds' refinements. Few weak matches do not pin it down: on two low-texture stand-ins (122 and
+        211 keypoints per image) the refined radial term ran to -0.8 to -1.6 on images without any, and
+        first models holding over half the views (no retry) stayed split.""")
     two_view_points: bool = option(False, flag(), """Incremental mapper: also triangulate points seen in
         two views only (COLMAP ignores them: ignore_two_view_tracks). With only two photos every point is
         seen in two, so COLMAP builds no model of them. false: where no model could be built otherwise,

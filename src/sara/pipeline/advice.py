@@ -29,10 +29,16 @@ def low_texture(extract_info: dict[str, Any], backend: str) -> str:
                  "centre: no EXIF, and the images did not tell the focal length): if you know the intrinsics, give "
                  "them with -s extract.camera_params=f,cx,cy,k (on a low-texture stand-in whose principal point is "
                  "9 px off the centre, the guess kept 14 to 47 of 47 views in the main model under four namings of its "
-                 "files, the true intrinsics all 47 each time); if you do not, sara maps again with the lens "
-                 "distortion held when the first model holds under half the views (there: all 47 views in one model "
-                 "under each naming), and -s map.refine_distortion=false holds it from the start")
+                 "files, the true intrinsics all 47 each time); if you do not, sara holds the lens distortion while "
+                 "mapping (map.hold_distortion_starved; -s map.refine_distortion=false holds it in the refinements "
+                 "too)")
     return text
+
+
+def starved(extract_info: dict[str, Any], backend: str, cameras_known: list[bool]) -> bool:
+    """Whether SIFT starved on these images (`low_texture`) and some camera's focal length is a guess
+    (`cameras_known`: per camera, whether the images or camera_params gave it)."""
+    return bool(low_texture(extract_info, backend)) and not all(cameras_known)
 
 
 def guessed_cameras(extract_info: dict[str, Any]) -> str:

@@ -228,8 +228,9 @@ def reconstruction(data: RunData) -> str:
         rows.append(("models of the rounds", f"contradicted by their verified pairs after the {esc(', '.join(mended))} "
                      "round(s): mended at the seam (map.mend_seam)"))
     if data.stages.get("map", {}).get("distortion_held"):
-        rows.append(("lens distortion", "held while mapping: with it refined, the first model held under half the "
-                     "views (map.refine_distortion)"))
+        rows.append(("lens distortion", "held while mapping: few keypoints per image and a guessed camera "
+                     "(map.hold_distortion_starved), or with it refined the first model held under half the views "
+                     "(map.refine_distortion)"))
     if data.stages.get("map", {}).get("two_view_points"):
         rows.append(("points", "those seen in two views only triangulated too: without them no model could be "
                      "built (map.two_view_points)"))
