@@ -180,9 +180,12 @@ def test_starved_means_few_sift_keypoints_and_a_camera_guessed():
     from sara.pipeline import advice
 
     few, many = {"num_images": 47, "keypoints_mean": 211.0}, {"num_images": 47, "keypoints_mean": 4000.0}
-    assert advice.starved(few, "sift", [False]) and advice.starved(few, "sift", [True, False])
-    assert not advice.starved(few, "sift", [True, True])  # EXIF or camera_params gave every focal length
-    assert not advice.starved(many, "sift", [False]) and not advice.starved(few, "aliked", [False])
+    assert advice.starved({**few, "cameras_guessed": [1, 1]}, "sift")
+    assert advice.starved({**few, "cameras_guessed": [1, 2]}, "sift")
+    assert not advice.starved({**few, "cameras_guessed": [0, 2]}, "sift")  # EXIF or camera_params gave them
+    assert not advice.starved(few, "sift")  # a record made before sara counted them: not known
+    assert not advice.starved({**many, "cameras_guessed": [1, 1]}, "sift")
+    assert not advice.starved({**few, "cameras_guessed": [1, 1]}, "aliked")
 
 
 def test_a_starved_capture_is_mapped_with_the_distortion_held_from_the_start(synthetic_scene, tmp_path: Path,

@@ -172,8 +172,7 @@ def run(conf: ExtractConfig, images: ImageSet, out_dir: Path, *, executor: Execu
         info["focal"] = focal.check_prior(db_path, estimate_with("", [n for n in images.names if n not in failed]))
     priors = colmap.camera_priors(db_path)  # camera -> whether EXIF gave its focal length
     info["num_cameras"] = len(priors)
-    if camera_mode in ("per_image", "per_exif"):  # how many of their cameras start from a guessed focal length
-        info["cameras_guessed"] = [sum(not known for known in priors.values()), len(priors)]
+    info["cameras_guessed"] = [sum(not known for known in priors.values()), len(priors)]  # focal length a guess
     failed = {**odd, **failed}
     info.update(camera_mode=camera_mode, backend=conf.backend, features=h5_path.name,
                 skipped=failed, time_s=time.perf_counter() - tic,

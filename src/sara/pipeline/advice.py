@@ -35,10 +35,11 @@ def low_texture(extract_info: dict[str, Any], backend: str) -> str:
     return text
 
 
-def starved(extract_info: dict[str, Any], backend: str, cameras_known: list[bool]) -> bool:
+def starved(extract_info: dict[str, Any], backend: str) -> bool:
     """Whether SIFT starved on these images (`low_texture`) and some camera's focal length is a guess
-    (`cameras_known`: per camera, whether the images or camera_params gave it)."""
-    return bool(low_texture(extract_info, backend)) and not all(cameras_known)
+    (neither EXIF nor camera_params gave it: `cameras_guessed` in the extract record)."""
+    guessed, _ = extract_info.get("cameras_guessed") or (0, 0)
+    return bool(low_texture(extract_info, backend)) and guessed > 0
 
 
 def guessed_cameras(extract_info: dict[str, Any]) -> str:

@@ -183,8 +183,7 @@ def map_model(conf: PipelineConfig, images_root: Path, out_dir: Path, *, db_path
         if commit_round is not None:
             commit_round()
 
-    starved = advice.starved(records.done_info(out_dir, extract.STAGE) or {}, conf.extract.backend,
-                             list(colmap.camera_priors(db).values()))
+    starved = advice.starved(records.done_info(out_dir, extract.STAGE) or {}, conf.extract.backend)
     try:
         return mapping.run(conf.map, work, images_root, out_dir, seed=conf.seed, upstream_key=upstream,
                            progress=progress, min_num_inliers=conf.match.min_num_inliers, commit=commit,
