@@ -93,6 +93,7 @@ NOT_USED = {  # file name -> what the run record says about it
     "PHOTO2.HEIC": "pip install 'sara[heic]'",
     "x.png ": "blank characters after its extension",
     "notes.txt": "not an image file",
+    "IMG_0001.MOV": "a video among images: sara uses the images; `sara run` on the video",  # a Live Photo's clip
 }
 
 
@@ -110,18 +111,21 @@ def cluttered(images, tmp_path) -> Path:
     (folder / "PHOTO2.HEIC").write_bytes(b"\0\0\0\x18ftypheic" + b"\0" * 64)
     shutil.copyfile(first, folder / "x.png ")
     (folder / "notes.txt").write_text("shot on a tripod")
+    (folder / "IMG_0001.MOV").write_bytes(b"\0\0\0\x14ftypqt  " + b"\0" * 64)
     return folder
 
 
 def test_every_file_not_used_is_reported(cluttered, tmp_path, run_cli, monkeypatch):
-    """Issue 30: broken links, GIFs, HEIC photos, `x.png ` were left out without a word."""
+    """Issue 30: broken links, GIFs, HEIC photos, `x.png ` were left out without a word; a video
+    among the photos (an iPhone's Live Photo clip) is named as one."""
     monkeypatch.setitem(sys.modules, "pillow_heif", None)  # as where it is not installed
     result = run_cli("extract", cluttered, tmp_path / "out", "-q")
     assert_ok(result)
     summary = [line for line in result.err.splitlines() if "not used:" in line]
     assert len(summary) == 1, result.err
-    for fragment in ("6 file(s)", "2 HEIC photo (pip install 'sara[heic]')", "1 broken link", "1 not an image",
-                     "1 unsupported image format", "1 blank after the extension", "skipped_images"):
+    for fragment in ("7 file(s)", "2 HEIC photo (pip install 'sara[heic]')", "1 broken link", "1 not an image",
+                     "1 unsupported image format", "1 blank after the extension", "1 video (`sara run VIDEO` for its "
+                     "frames)", "skipped_images"):
         assert fragment in summary[0]
     skipped = json.loads((tmp_path / "out" / "run.json").read_text())["skipped_images"]
     assert set(skipped) == set(NOT_USED)

@@ -131,6 +131,9 @@ def folder_mismatch(root: Path, cache_path: Path, *, rotated: frozenset[str] = f
     return None
 
 
+#: the extensions of the videos `sara run` picks frames from (`sara.video`)
+VIDEO_EXTENSIONS = (".mp4", ".mov", ".m4v", ".avi", ".mkv", ".webm", ".mpg", ".mpeg", ".mts", ".m2ts", ".wmv",
+                    ".flv", ".3gp", ".ogv")
 #: HEIC photos (phones) are read through pillow-heif, an optional extra
 HEIC_EXTENSIONS = (".heic", ".heif")
 HEIC_MISSING = "HEIC photo: install pillow-heif (pip install 'sara[heic]') to use it"
@@ -214,12 +217,16 @@ def not_used_reason(root: Path, name: str, *, copied: tuple[str, ...] = ()) -> s
     suffix = Path(lower).suffix
     if suffix in OTHER_IMAGE_FORMATS:
         return f"a {suffix} file, a format sara does not read; convert it to JPEG or PNG to use it"
+    if suffix in VIDEO_EXTENSIONS:  # beside photos: a phone's Live Photo clip, or a video to use on its own
+        return ("a video among images: sara uses the images; `sara run` on the video (or on a folder of videos) "
+                "uses its frames")
     return "not an image file"
 
 
 def _summary_label(reason: str) -> str:
     for start, label in (("broken", "broken link"), ("blank", "blank after the extension"),
                          ("HEIC", "HEIC photo (pip install 'sara[heic]')"), ("a .", "unsupported image format"),
+                         ("a video", "video (`sara run VIDEO` for its frames)"),
                          ("not an image", "not an image")):
         if reason.startswith(start):
             return label

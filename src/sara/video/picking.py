@@ -15,12 +15,10 @@ import numpy as np
 from tqdm import tqdm
 
 from ..io import atomic_path, file_digest
-from ..io.images import list_image_files
+from ..io.images import VIDEO_EXTENSIONS, list_image_files
 
 logger = logging.getLogger(__name__)
 
-VIDEO_EXTENSIONS = (".mp4", ".mov", ".m4v", ".avi", ".mkv", ".webm", ".mpg", ".mpeg", ".mts", ".m2ts", ".wmv",
-                    ".flv", ".3gp", ".ogv")
 #: frames picked per video when neither --frames nor --fps is given
 DEFAULT_FRAMES = 150
 #: above this many seconds between the frames picked by default, the run says how to pick closer
