@@ -289,3 +289,37 @@ def test_a_camera_moving_straight_ahead_tells_no_focal_length():
     assert not any(focal.moves_along_the_axis(F, width, height) for F in general)
     mixed = focal.estimate(general + forward, width, height, prior)
     assert mixed.num_pairs == 20 and abs(np.log(mixed.focal_px / (3 * prior))) < np.log(1.07)
+
+
+def test_a_clip_added_by_an_update_gets_its_focal_check(tmp_path: Path):
+    """The long-lens crops of the test above as two clips, the second added to the folder after a
+    first run on the first: the update checks the new clip's camera on its own frames, as a first
+    run checks each video's."""
+    from sara import extract, incremental
+    from sara.colmap import shared_camera
+    from sara.config import ExtractConfig
+    from sara.io import records
+    from sara.io.images import scan_images
+
+    scene = scene_dir("strecha-Herz-Jesus-P25")
+    images = tmp_path / "images"
+    images.mkdir()
+    groups, later = {}, {}
+    for k, path in enumerate(sorted((scene / "images").iterdir())):
+        with Image.open(path) as im:
+            w, h = im.size
+            name = f"{'ab'[k // 13]}_f{k:06d}.png"
+            crop = im.crop((2 * w // 5, 2 * h // 5, 3 * w // 5, 3 * h // 5))
+            (later.__setitem__(name, crop) if name.startswith("b") else crop.save(images / name))
+            groups[name] = f"{name[0]}.mp4"
+    prior = 1.2 * (3 * w // 5 - 2 * w // 5)
+    out, conf = tmp_path / "out", ExtractConfig(num_threads=2)
+    extract.run(conf, scan_images(images, progress=False), out, progress=False, camera_groups=groups)
+    for name, crop in later.items():
+        crop.save(images / name)
+    everything = scan_images(images, progress=False)
+    assert incremental.update_features(conf, everything, out, progress=False, camera_groups=groups) is not None
+    extract.run(conf, everything, out, progress=False, camera_groups=groups)
+    found = records.done_info(out, extract.STAGE)["focal_per_video"]["b.mp4"]
+    assert found["applied"] and focal.LONGER_THAN_PRIOR * prior <= found["estimated_px"] < 4.5 * prior
+    assert shared_camera(out / extract.DB_NAME, list(later)).mean_focal_length() == found["estimated_px"]

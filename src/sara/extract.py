@@ -9,6 +9,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
+from typing import Any
 
 import h5py
 import numpy as np
@@ -179,6 +180,20 @@ def run(conf: ExtractConfig, images: ImageSet, out_dir: Path, *, executor: Execu
                 settings=settings_of(conf), images=digests, usable_key=key_without(set(failed)))
     records.mark_done(out_dir, STAGE, key, info, outputs=recorded(db_path, h5_path))
     return h5_path
+
+
+def check_added_videos(conf: ExtractConfig, folder: Path, groups: dict[str, str], added: list[str]) -> dict[str, Any]:
+    """The focal check of each video whose frames in `folder`'s database and features file are all
+    among `added` (a clip added by an update), as a first run checks every video's camera; video ->
+    what it found."""
+    if not conf.estimate_focal or conf.camera_params:
+        return {}
+    db_path, frames = folder / DB_NAME, {}
+    for name in colmap.images_with_keypoints(db_path):
+        frames.setdefault(groups.get(name), []).append(name)
+    estimate_with = _from_features(folder / features_file_name(conf))
+    return {video: focal.check_prior(db_path, estimate_with(video, sorted(names)), sorted(names), video)
+            for video, names in frames.items() if video is not None and set(names) <= set(added)}
 
 
 def _from_features(h5_path: Path) -> Callable[[str, list[str]], Callable]:

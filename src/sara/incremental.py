@@ -162,10 +162,13 @@ def update_features(conf: ExtractConfig, images: ImageSet, out_dir: Path, *, exe
     if info.get("camera_mode") == "per_exif":  # a new photo joins its phone's camera
         grouped = camera_sharing(images, conf)[1]
     extracted, failed = _update_copies(conf, images, out_dir, change, info, executor, progress, grouped)
+    focals = extract.check_added_videos(conf, _work(out_dir), grouped, change.to_extract) if camera_groups \
+        and grouped else {}  # a clip added: its camera checked as a first run checks each video's
     colmap.copy_database(_work(out_dir) / extract.DB_NAME, _work(out_dir) / MATCHED_NAME)
     new_info = _new_info(out_dir, info, digests, extracted, failed, time.perf_counter() - tic)
     if camera_groups and grouped and len(set(grouped.values())) > 1:
         new_info["camera_mode"] = "per_video"
+        new_info["focal_per_video"] = {**(info.get("focal_per_video") or {}), **focals}
     current.update(phase="swap", num_extracted=extracted, extract_time_s=time.perf_counter() - tic,
                    extract_info=new_info)
     _save(out_dir, key, current)
