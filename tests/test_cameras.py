@@ -67,12 +67,12 @@ def test_photos_that_share_no_phone_get_a_camera_each(tmp_path: Path):
     assert _mode(tmp_path) == "per_image"
 
 
-def test_a_photo_added_later_joins_its_phones_camera(synthetic_scene, tmp_path: Path, run_cli):
+def test_a_photo_added_later_joins_its_phones_camera(five_view_scene, tmp_path: Path, run_cli):
     """The photos of two phones, extracted with a camera per phone; one more photo of the first
     phone added to the folder: the update gives it that phone's camera."""
     import sqlite3
 
-    images, _ = synthetic_scene
+    images, _ = five_view_scene
     folder = tmp_path / "photos"
     folder.mkdir()
     paths = sorted(images.iterdir())

@@ -188,8 +188,8 @@ def test_starved_means_few_sift_keypoints_and_a_camera_guessed():
     assert not advice.starved({**few, "cameras_guessed": [1, 1]}, "aliked")
 
 
-def test_a_starved_capture_is_mapped_with_the_distortion_held_from_the_start(synthetic_scene, tmp_path: Path,
-                                                                            monkeypatch):
+def test_a_starved_capture_is_mapped_with_the_distortion_held_from_the_start(synthetic_scene, scene_features,
+                                                                            tmp_path: Path, monkeypatch):
     """A capture without EXIF whose SIFT keypoints count as starved (the bar raised above the
     synthetic scene's count: its rendered points give no matches at a few hundred keypoints): the
     first mapping holds the lens distortion and says so; with the option off it is refined."""
@@ -197,7 +197,7 @@ def test_a_starved_capture_is_mapped_with_the_distortion_held_from_the_start(syn
 
     from harness import run_redirected
     from sara import mapping
-    from sara.pipeline import advice
+    from sara.pipeline import advice, share_features
 
     monkeypatch.setattr(advice, "LOW_TEXTURE_KEYPOINTS", 100_000)
     refined, real_map = [], mapping._map
@@ -206,6 +206,7 @@ def test_a_starved_capture_is_mapped_with_the_distortion_held_from_the_start(syn
     images, _ = synthetic_scene
     for setting, held in (("true", True), ("false", False)):
         out = tmp_path / setting
+        share_features(scene_features, out)  # the scene's features, made once for the session
         result = run_redirected("run", images, out, "-q", "-s", f"map.hold_distortion_starved={setting}")
         assert result.code == 0, result.err
         assert refined[0] is not held  # the first mapping; the rounds' continue as it did
