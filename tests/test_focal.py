@@ -310,7 +310,10 @@ def test_a_clip_added_by_an_update_gets_its_focal_check(tmp_path: Path):
             w, h = im.size
             name = f"{'ab'[k // 13]}_f{k:06d}.png"
             crop = im.crop((2 * w // 5, 2 * h // 5, 3 * w // 5, 3 * h // 5))
-            (later.__setitem__(name, crop) if name.startswith("b") else crop.save(images / name))
+            if name.startswith("b"):  # the second clip: added after the first run
+                later[name] = crop
+            else:
+                crop.save(images / name)
             groups[name] = f"{name[0]}.mp4"
     prior = 1.2 * (3 * w // 5 - 2 * w // 5)
     out, conf = tmp_path / "out", ExtractConfig(num_threads=2)
