@@ -1,4 +1,4 @@
-"""How `camera_mode=auto` decides between one shared camera and one camera per image."""
+"""How `camera_mode=auto` shares cameras: one for all images, one per video, one per phone (EXIF) or one per image."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from sara.cameras import ExifCamera, camera_sharing, exif_camera, resolve_camera_mode
+from sara.cameras import ExifCamera, camera_sharing, exif_camera
 from sara.config import ExtractConfig
 from sara.io.images import scan_images
 
@@ -30,7 +30,7 @@ def _photo(path: Path, size=(64, 48), make: str | None = None, model: str | None
 
 
 def _mode(folder: Path) -> str:
-    return resolve_camera_mode(scan_images(folder, progress=False), ExtractConfig())
+    return camera_sharing(scan_images(folder, progress=False), ExtractConfig())[0]
 
 
 def test_exif_camera_reads_make_model_and_focal(tmp_path: Path):
@@ -155,9 +155,9 @@ def test_frames_of_several_videos_get_a_camera_per_video(tmp_path: Path):
         _photo(tmp_path / f"b_f{k}.jpg")
     images = scan_images(tmp_path, progress=False)
     groups = {n: n.split("_")[0] + ".mp4" for n in images.names}
-    assert resolve_camera_mode(images, ExtractConfig(), groups) == "per_video"
-    assert resolve_camera_mode(images, ExtractConfig(), dict.fromkeys(images.names, "a.mp4")) == "single"
-    assert resolve_camera_mode(images, ExtractConfig(camera_mode="single"), groups) == "single"  # as asked
+    assert camera_sharing(images, ExtractConfig(), groups) == ("per_video", groups)
+    assert camera_sharing(images, ExtractConfig(), dict.fromkeys(images.names, "a.mp4"))[0] == "single"
+    assert camera_sharing(images, ExtractConfig(camera_mode="single"), groups)[0] == "single"  # as asked
 
 
 @pytest.mark.parametrize("name, orientation, rotate", [("IMG_0001.HEIC", 1, False), ("IMG_0002.jpg", 6, True)])

@@ -52,11 +52,6 @@ def exif_camera(path: Path) -> ExifCamera:
     return ExifCamera(text(make), text(model), number(focal), number(focal_35))
 
 
-def resolve_camera_mode(images: ImageSet, conf: ExtractConfig, groups: dict[str, str] | None = None) -> str:
-    """The camera mode of `camera_sharing`."""
-    return camera_sharing(images, conf, groups)[0]
-
-
 def camera_sharing(images: ImageSet, conf: ExtractConfig,
                    videos: dict[str, str] | None = None) -> tuple[str, dict[str, str] | None]:
     """(camera mode, image -> its group for the grouped modes). `auto`: one shared camera when every

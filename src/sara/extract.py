@@ -112,7 +112,7 @@ def run(conf: ExtractConfig, images: ImageSet, out_dir: Path, *, executor: Execu
     extension, a file gone since the scan) are set aside, each with one warning, and listed in the
     stage record (`usable` applies that list on every later run). A finished stage is trusted only
     while the features file and the database still hold what it wrote. `camera_groups` (frame ->
-    the video it came from) gives the frames of each video one camera (`resolve_camera_mode`).
+    the video it came from) gives the frames of each video one camera (`camera_sharing`).
     """
     out_dir = Path(out_dir)
     db_path, h5_path = out_dir / DB_NAME, out_dir / features_file_name(conf)
