@@ -372,4 +372,4 @@ def test_a_view_left_without_verified_pairs_is_taken_out_of_the_model_continued(
     rec = continued.reconstructions[0]
     assert rec.num_reg_images() == 19 and alone not in rec.reg_image_ids()
     assert "1 of the 20 views of the model continued have no verified pair left" in caplog.text
-    assert not list(tmp_path.glob(".start-*"))  # the trimmed copy is gone
+    assert not list((tmp_path / "more").glob(".start-*"))  # the trimmed copy is gone

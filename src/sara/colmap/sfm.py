@@ -127,7 +127,8 @@ def _mappable_start(db_path: Path, input_path: Path | None, min_num_matches: int
     pairs went with images removed by an update, or were not selected again). COLMAP leaves such a
     view out of what it loads from the database, and continuing a model that holds it fails on a
     lookup by its id (IndexError: unordered_map::at). None (map from scratch) when fewer than two
-    views stay; the copy is deleted on exit."""
+    views stay; the copy, inside `out_dir` (which a killed mapping's next start clears), is deleted
+    on exit."""
     if input_path is None:
         yield None
         return
@@ -137,8 +138,8 @@ def _mappable_start(db_path: Path, input_path: Path | None, min_num_matches: int
     if not lost:
         yield input_path
         return
-    out_dir.parent.mkdir(parents=True, exist_ok=True)
-    with tempfile.TemporaryDirectory(prefix=".start-", dir=out_dir.parent) as tmp:
+    out_dir.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(prefix=".start-", dir=out_dir) as tmp:
         left = prune_model(Path(input_path), lost, Path(tmp))
         logger.warning("map: %d of the %d views of the model continued have no verified pair left (%s): "
                        "left out of it%s", len(lost), rec.num_reg_images(), ", ".join(sorted(lost)[:3]) +
