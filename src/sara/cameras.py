@@ -86,13 +86,13 @@ def share_per_group(db_path: Path, images: ImageSet, groups: dict[str, str]) -> 
     """One camera for the images of each group (`groups`: image -> its video, or its phone; of each
     size, should a video change size); an image without a group keeps its own. Returns group -> its
     images in the database."""
-    by_video: dict[tuple, list[str]] = {}
+    by_group: dict[tuple, list[str]] = {}
     kept = colmap.images_with_keypoints(db_path)
     for name in images.names:
         if name in kept:
-            by_video.setdefault((groups.get(name, name), images.sizes[name]), []).append(name)
-    colmap.share_cameras(db_path, list(by_video.values()))
+            by_group.setdefault((groups.get(name, name), images.sizes[name]), []).append(name)
+    colmap.share_cameras(db_path, list(by_group.values()))
     out: dict[str, list[str]] = {}
-    for (video, _), names in by_video.items():
-        out.setdefault(video, []).extend(names)
+    for (group, _), names in by_group.items():
+        out.setdefault(group, []).extend(names)
     return out

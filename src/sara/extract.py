@@ -165,10 +165,9 @@ def run(conf: ExtractConfig, images: ImageSet, out_dir: Path, *, executor: Execu
     if info["static_keypoints"]["num_keypoints"] and estimate_with is not None:  # fitted with an overlay's matches
         estimate_with = _from_features(h5_path)
     if groups is not None:
-        videos = share_per_group(db_path, images, groups)
+        shared = share_per_group(db_path, images, groups)
         if estimate_with is not None:  # frames of videos: photos' groups have EXIF focal lengths
-            info["focal_per_video"] = {video: focal.check_prior(db_path, estimate_with(video, names), names, video)
-                                       for video, names in videos.items()}
+            info["focal_per_video"] = _focal_per_video(db_path, estimate_with, shared)
     elif estimate_with is not None:
         info["focal"] = focal.check_prior(db_path, estimate_with("", [n for n in images.names if n not in failed]))
     priors = colmap.camera_priors(db_path)  # camera -> whether EXIF gave its focal length
@@ -189,11 +188,17 @@ def check_added_videos(conf: ExtractConfig, folder: Path, groups: dict[str, str]
     if not conf.estimate_focal or conf.camera_params:
         return {}
     db_path, frames = folder / DB_NAME, {}
-    for name in colmap.images_with_keypoints(db_path):
+    for name in sorted(colmap.images_with_keypoints(db_path)):
         frames.setdefault(groups.get(name), []).append(name)
-    estimate_with = _from_features(folder / features_file_name(conf))
-    return {video: focal.check_prior(db_path, estimate_with(video, sorted(names)), sorted(names), video)
-            for video, names in frames.items() if video is not None and set(names) <= set(added)}
+    new = {video: names for video, names in frames.items() if video is not None and set(names) <= set(added)}
+    return _focal_per_video(db_path, _from_features(folder / features_file_name(conf)), new)
+
+
+def _focal_per_video(db_path: Path, estimate_with: Callable[[str, list[str]], Callable],
+                     videos: dict[str, list[str]]) -> dict[str, Any]:
+    """The focal check of each video's camera on its own frames (`videos`: video -> its frames)."""
+    return {video: focal.check_prior(db_path, estimate_with(video, names), names, video)
+            for video, names in videos.items()}
 
 
 def _from_features(h5_path: Path) -> Callable[[str, list[str]], Callable]:

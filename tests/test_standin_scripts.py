@@ -1,0 +1,73 @@
+"""The stand-in scripts that docs/results.md shows (`python lab/scripts/X.py SCENE DEST`), run as
+written on the five-view synthetic scene: their true models must describe the images they write."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+from PIL import Image
+
+from sara.cameras import exif_camera
+
+SCRIPTS = Path(__file__).resolve().parents[1] / "lab" / "scripts"
+
+
+def _run(script: str, *args) -> None:
+    subprocess.run([sys.executable, str(SCRIPTS / script), *map(str, args)], check=True, capture_output=True)
+
+
+def _model(gt: Path) -> pycolmap.Reconstruction:
+    rec = pycolmap.Reconstruction()
+    rec.read_text(str(gt))
+    return rec
+
+
+def _pixel(rec: pycolmap.Reconstruction, name: str, xyz: np.ndarray) -> np.ndarray:
+    image = next(im for im in rec.images.values() if im.name == name)
+    return np.asarray(rec.cameras[image.camera_id].img_from_cam(image.cam_from_world() * xyz))
+
+
+def test_phones_standin_turns_the_true_camera_with_the_pixels_and_writes_a_phones_exif(five_view_scene, tmp_path):
+    import shutil
+
+    scene = tmp_path / "scene"  # the five views, their principal point moved off the centre (as real ones are)
+    shutil.copytree(five_view_scene[0].parent, scene)
+    cameras = _model(scene / "gt")
+    for camera in cameras.cameras.values():
+        camera.params = np.asarray(camera.params) + np.array([0.0, 0.0, 23.0, -17.0])[-len(camera.params):]
+    cameras.write_text(str(scene / "gt"))
+    dest = tmp_path / "phones"
+    _run("phones_standin.py", scene, dest, "--phones", "2", "--portrait", "0.5", "--seed", "3")
+    source, made = _model(scene / "gt"), _model(dest / "gt")
+    turned = 0
+    for image in source.images.values():
+        name = Path(image.name).with_suffix(".jpg").name
+        xyz = image.cam_from_world().inverse() * np.array([0.8, 0.5, 5.0])  # ahead of it, off the axis
+        u, v = _pixel(source, image.name, xyz)
+        with Image.open(dest / "images" / name) as photo:
+            width, height = photo.size
+        camera = exif_camera(dest / "images" / name)
+        assert camera.complete() and camera.focal_35mm
+        scale = max(width, height) / max(source.cameras[image.camera_id].width, source.cameras[image.camera_id].height)
+        portrait = height > width
+        turned += portrait
+        expected = (width - v * scale, u * scale) if portrait else (u * scale, v * scale)  # a quarter clockwise
+        assert np.allclose(_pixel(made, name, xyz), expected, atol=1.0), name
+    assert 0 < turned < len(source.images)
+
+
+def test_dashcam_standin_draws_the_overlay_and_keeps_the_poses(five_view_scene, tmp_path):
+    scene = five_view_scene[0].parent
+    dest = tmp_path / "dashcam"
+    _run("dashcam_standin.py", scene, dest)
+    names = sorted(p.name for p in (scene / "images").iterdir())
+    assert sorted(p.name for p in (dest / "images").iterdir()) == names
+    for name in names:
+        with Image.open(dest / "images" / name) as drawn, Image.open(scene / "images" / name) as plain:
+            box = np.asarray(drawn.convert("L"))[12:48, 12:228]
+            assert (box == 0).mean() > 0.5 and not np.array_equal(np.asarray(drawn), np.asarray(plain))
+    assert (dest / "gt" / "images.txt").read_text() == (scene / "gt" / "images.txt").read_text()
