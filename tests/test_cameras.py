@@ -1,4 +1,5 @@
-"""How `camera_mode=auto` shares cameras: one for all images, one per video, one per phone (EXIF) or one per image."""
+"""How `camera_mode=auto` shares cameras: one for all images, one per video or numbered sequence of
+frames, one per phone (EXIF) or one per image."""
 
 from __future__ import annotations
 
@@ -158,6 +159,30 @@ def test_frames_of_several_videos_get_a_camera_per_video(tmp_path: Path):
     assert camera_sharing(images, ExtractConfig(), groups) == ("per_video", groups)
     assert camera_sharing(images, ExtractConfig(), dict.fromkeys(images.names, "a.mp4"))[0] == "single"
     assert camera_sharing(images, ExtractConfig(camera_mode="single"), groups)[0] == "single"  # as asked
+
+
+def test_numbered_sequences_of_one_size_get_a_camera_each(tmp_path: Path):
+    """Frames a user extracted from two clips (`clip0_0001.png`, ...; no EXIF): a camera per
+    sequence, each of one size; the rule holds within a sequence what `single` asks of a folder."""
+    clips, collection, short = tmp_path / "clips", tmp_path / "collection", tmp_path / "short"
+    for folder in (clips, collection, short):
+        folder.mkdir()
+    for k in range(3):
+        _photo(clips / f"clip0_{k:04d}.png", size=(64, 48))
+        _photo(clips / f"clip1_{k:04d}.png", size=(48, 64))  # the phone held upright
+        _photo(collection / f"{k:05d}.jpg", size=(64 + k % 2, 48))  # numbered, but of two sizes: no clip
+        _photo(collection / f"{k + 3:05d}.jpg", size=(64 + k % 2, 48))
+        _photo(short / f"{k}_x.png", size=(64 + k, 48))
+    _photo(clips / "still.jpg", size=(50, 40))  # not in a sequence: its own camera
+    images = scan_images(clips, progress=False)
+    mode, groups = camera_sharing(images, ExtractConfig())
+    assert mode == "per_sequence"
+    assert groups == {n: f"frames clip{n[4]}_#.png" for n in images.names if n.startswith("clip")}
+    assert _mode(collection) == "per_image" and _mode(short) == "per_image"
+    for k in range(2):  # two frames of one more clip: too few to tell a clip
+        _photo(short / f"c_{k}.png", size=(32, 32))
+    assert _mode(short) == "per_image"
+    assert camera_sharing(images, ExtractConfig(camera_mode="per_image"))[0] == "per_image"  # as asked
 
 
 @pytest.mark.parametrize("name, orientation, rotate", [("IMG_0001.HEIC", 1, False), ("IMG_0002.jpg", 6, True)])

@@ -33,6 +33,23 @@ def test_the_grid_holds_keypoints_fixed_in_every_image_and_not_random_ones():
     assert cells.all() and grid.sum() <= 3 * (4 + 2 * overlay.MARGIN_CELLS) ** 2  # a box round each, no more
 
 
+def test_the_distant_scene_ahead_of_a_forward_drive_drifts_and_is_kept():
+    """A short clip driving straight: the far scene round the point it heads for stays in its cells
+    (26 frames of kitti-seq1 lost 1,165 keypoints there, and 0.006-0.010 AUC@5), but drifts out from
+    it by a pixel or two, where an overlay's keypoints come back to a fraction of one."""
+    rng = np.random.default_rng(1)
+    heading, far = np.array([320.0, 200.0]), np.array([[310.3, 196.1], [331.2, 205.4], [318.8, 209.7], [326.4, 190.2]])
+    text = np.array([[40.5, 20.2], [52.1, 20.7], [63.0, 21.0]])
+    frames = []
+    for k in range(26):
+        drift = heading + (far - heading) * (1 + 0.012 * k)  # 0.1-0.2 px a frame out from the heading
+        frames.append(np.vstack([rng.uniform((0, 0), (640, 480), (2000, 2)), drift + rng.normal(0, 0.05, far.shape),
+                                 text + rng.normal(0, 0.05, text.shape)]))
+    grid = overlay.static_grid(frames, 640, 480)
+    assert grid.reshape(-1)[overlay._cells(text, 640, 480)].all()
+    assert not grid.reshape(-1)[overlay._cells(far, 640, 480)].any()
+
+
 def _with_overlay(images: Path, dest: Path) -> Path:
     dest.mkdir()
     for k, path in enumerate(sorted(images.iterdir())):

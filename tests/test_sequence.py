@@ -265,6 +265,8 @@ def test_images_of_their_own_guessed_cameras_get_the_advice(synthetic_scene, tmp
 
     assert advice.guessed_cameras({"cameras_guessed": [30, 30]})
     assert not advice.guessed_cameras({"cameras_guessed": [1, 30]})  # most focal lengths from EXIF
+    for mode in ("per_video", "per_sequence"):  # two clips: each camera's guess refined from all its frames
+        assert not advice.guessed_cameras({"cameras_guessed": [2, 2], "camera_mode": mode})
     assert not advice.guessed_cameras({"camera_mode": "single"})
     images = tmp_path / "images"
     images.mkdir()

@@ -3,13 +3,17 @@ its own video, of its own size (`--scale`) or turned a quarter as a phone held u
 with the ground truth of the frames, so that the run on the folder is scored against true poses.
 
     python lab/scripts/video_clips_standin.py ../shared/data/kitti-seq1 DEST --clips 2 [--scale 1,0.8]
-        [--turns 0,1] [--quality 95]
+        [--turns 0,1] [--quality 95] [--images]
     sara run DEST/clips OUT --frames N --gt DEST/gt
+    sara run DEST/images OUT --gt DEST/gt          # with --images
 
 writes DEST/clips/clip<k>.avi (MJPG, as `video_from_frames.py`; consecutive images of SCENE/images
 in name order, split into equal runs) and DEST/gt: the true model of SCENE/gt with each image named
 as sara names its frame (`sara.video.frame_name`), the poses of the turned clips' frames turned
 with their images (the camera's x and y axes go with the picture), so the evaluation holds for them.
+With `--images`, each clip's frames are written instead as numbered PNG images in DEST/images, with
+the names sara would give them and no EXIF, as a user's own `ffmpeg -i clip0.mp4 clip0_f%06d.png`
+leaves them.
 """
 
 from __future__ import annotations
@@ -84,13 +88,14 @@ def main() -> None:
     parser.add_argument("--turns", default="", help="per clip, quarter turns clockwise (default 0 each)")
     parser.add_argument("--fps", type=float, default=10.0)
     parser.add_argument("--quality", type=int, default=95)
+    parser.add_argument("--images", action="store_true", help="write each clip's frames as PNG images, not a video")
     args = parser.parse_args()
     names = list_image_files(args.scene / "images")
     scales = [float(v) for v in args.scale.split(",")] if args.scale else [1.0] * args.clips
     turns = [int(v) for v in args.turns.split(",")] if args.turns else [0] * args.clips
     if len(scales) != args.clips or len(turns) != args.clips:
         raise SystemExit("--scale and --turns take one value per clip")
-    clips_dir = args.dest / "clips"
+    clips_dir = args.dest / ("images" if args.images else "clips")
     clips_dir.mkdir(parents=True, exist_ok=True)
     rename, turned, listing = {}, {}, []
     for k, part in enumerate(np.array_split(np.array(names), args.clips)):
@@ -102,21 +107,25 @@ def main() -> None:
                 frame = cv2.resize(frame, None, fx=scales[k], fy=scales[k], interpolation=cv2.INTER_AREA)
             frames.append(np.ascontiguousarray(np.rot90(frame, k=-turns[k])))
         height, width = frames[0].shape[:2]
-        path = clips_dir / f"{stem}.avi"
-        writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), args.fps, (width, height))
-        writer.set(cv2.VIDEOWRITER_PROP_QUALITY, args.quality)
-        for frame in frames:
-            writer.write(frame)
-        writer.release()
         for index, name in enumerate(part):
             rename[str(name)] = frame_name(stem, index, len(part))
             turned[rename[str(name)]] = turns[k] % 4
-        listing.append({"video": path.name, "images": [str(n) for n in part], "size": [width, height],
-                        "scale": scales[k], "turns": turns[k]})
+        path = clips_dir / f"{stem}.avi"
+        if args.images:
+            for frame, name in zip(frames, part):
+                cv2.imwrite(str(clips_dir / rename[str(name)]), frame)
+        else:
+            writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), args.fps, (width, height))
+            writer.set(cv2.VIDEOWRITER_PROP_QUALITY, args.quality)
+            for frame in frames:
+                writer.write(frame)
+            writer.release()
+        listing.append({"video": None if args.images else path.name, "images": [str(n) for n in part],
+                        "size": [width, height], "scale": scales[k], "turns": turns[k]})
     gt = model.write_model(args.scene / "gt", args.dest / "gt", rename=rename, text=True)
     turn_poses(gt, turned)
     (args.dest / "clips.json").write_text(json.dumps(listing, indent=2) + "\n")
-    print(f"{args.clips} clips in {clips_dir}, ground truth of their frames: {gt}")
+    print(f"{args.clips} clips {'as frames ' if args.images else ''}in {clips_dir}, ground truth of their frames: {gt}")
 
 
 if __name__ == "__main__":

@@ -1,5 +1,6 @@
 """How the images of a run share cameras: the rule of `camera_mode=auto`, one camera for the frames
-of each video of a folder of clips, and one for the photos of each phone of a collection."""
+of each video of a folder of clips (or of each numbered sequence of frames a user extracted), and one
+for the photos of each phone of a collection."""
 
 from __future__ import annotations
 
@@ -9,9 +10,12 @@ from typing import NamedTuple
 from . import colmap
 from .config import ExtractConfig
 from .io.images import ImageSet
+from .io.numbered import numbered
 
 #: the camera modes that import a camera per image, then give each group of images one camera
-GROUPED_MODES = ("per_video", "per_exif")
+GROUPED_MODES = ("per_video", "per_exif", "per_sequence")
+#: fewest frames of a numbered sequence of one size and EXIF that share a camera (`per_sequence`)
+MIN_SEQUENCE_FRAMES = 3
 
 
 class ExifCamera(NamedTuple):
@@ -59,8 +63,11 @@ def camera_sharing(images: ImageSet, conf: ExtractConfig,
     all, as frames of one video); one camera per video (`per_video`) for frames of several videos
     (`videos`: frame -> its video), which may come from other phones or the same phone turned; one
     camera per phone (`per_exif`) for photos whose EXIF names their camera (make, model, focal
-    length) when some of them share one and a size (a few phones, a phone held both ways); else one
-    camera per image: photos of the same size from different phones must not share intrinsics."""
+    length) when some of them share one and a size (a few phones, a phone held both ways); one camera
+    per numbered sequence (`per_sequence`) for frames a user extracted from several clips (names that
+    differ only by a frame number, each sequence of one size, without a camera in EXIF: `clip0_0001.png`,
+    ...), the phones grouped as well; else one camera per image: photos of the same size from different phones
+    must not share intrinsics."""
     if conf.camera_mode != "auto":
         if conf.camera_mode not in ("single", "per_image", "per_folder"):
             raise ValueError(f"unknown camera_mode {conf.camera_mode!r}; choose auto, single, per_image or "
@@ -72,9 +79,27 @@ def camera_sharing(images: ImageSet, conf: ExtractConfig,
     if len({images.sizes[n] for n in images.names}) == 1 and len(set(exif.values())) == 1:
         return "single", None
     phones = {n: _phone_key(cam, images.sizes[n]) for n, cam in exif.items() if cam.complete()}
+    frames = _sequence_groups(images, {n: cam for n, cam in exif.items() if not cam.complete()})
+    if frames:
+        return "per_sequence", {**frames, **phones}
     if len(phones) - len(set(phones.values())) > 0:  # two photos or more from one phone held one way
         return "per_exif", phones
     return "per_image", None
+
+
+def _sequence_groups(images: ImageSet, exif: dict[str, ExifCamera]) -> dict[str, str]:
+    """image -> its sequence, for the images in `exif` (those without a camera in EXIF) in numbered
+    sequences of `MIN_SEQUENCE_FRAMES` or more whose frames all have one size and one EXIF: the
+    frames of one clip, extracted by the user (`single`'s rule, held within each sequence). A
+    sequence of several sizes (a collection numbered 00000.jpg, ... from many cameras) is no clip."""
+    groups: dict[tuple[str, str], list[str]] = {}
+    for name in exif:
+        found = numbered(name)
+        if found is not None:
+            groups.setdefault(found[0], []).append(name)
+    one_camera = {key: names for key, names in groups.items() if len(names) >= MIN_SEQUENCE_FRAMES
+                  and len({images.sizes[n] for n in names}) == 1 and len({exif[n] for n in names}) == 1}
+    return {n: f"frames {before}#{after}" for (before, after), names in one_camera.items() for n in names}
 
 
 def _phone_key(camera: ExifCamera, size: tuple[int, int]) -> str:

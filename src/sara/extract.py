@@ -144,7 +144,8 @@ def run(conf: ExtractConfig, images: ImageSet, out_dir: Path, *, executor: Execu
     one = "--camera-mode single" if camera_mode == "single" else "extract.camera_params" if conf.camera_params else ""
     odd = image_files.other_sizes(images, one) if one else {}
     images = set_aside(images, odd)
-    wants_focal = conf.estimate_focal and camera_mode in ("single", "per_video") and not conf.camera_params
+    wants_focal = conf.estimate_focal and camera_mode in ("single", "per_video", "per_sequence") and \
+        not conf.camera_params
     if hasattr(backend, "extract_to_database"):  # the focal check's pairs fitted during the extraction
         counts, failed, fundamentals = _extract_sift(backend, db_path, h5_path, images, importing, wants_focal,
                                                      progress, groups)

@@ -159,7 +159,7 @@ def update_features(conf: ExtractConfig, images: ImageSet, out_dir: Path, *, exe
     tic = time.perf_counter()
     change = compare(old_digests, digests, across_folders=_across_folders(info))
     grouped = camera_groups if conf.camera_mode == "auto" and camera_groups else None
-    if info.get("camera_mode") == "per_exif":  # a new photo joins its phone's camera
+    if info.get("camera_mode") in ("per_exif", "per_sequence"):  # a photo joins its phone's camera, a frame its clip's
         grouped = camera_sharing(images, conf)[1]
     extracted, failed = _update_copies(conf, images, out_dir, change, info, executor, progress, grouped)
     focals = extract.check_added_videos(conf, _work(out_dir), grouped, change.to_extract) if camera_groups \

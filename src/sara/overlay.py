@@ -11,8 +11,11 @@ give by chance (fewer than CHANCE_CELLS such cells), and in patches of at least 
 The keypoints in and next to those cells are taken out of the features file and the database
 before any pair is scored or matched. Where
 the camera moves, no part of the scene stays on the same pixels in nearly every image (none on
-kitti-seq1 and the shared scenes, measured); where the camera stands still (a turntable's
-background), what stays put is not the object, and taking it out is what such captures want too.
+kitti-seq1 and the shared scenes, measured), but for the distant scene ahead of a camera driving
+straight in a short clip: that drifts by a pixel or two where an overlay's keypoints come back to a
+fraction of one, so patches whose keypoints drift are the scene's (`_still`); where the camera
+stands still (a turntable's background), what stays put is not the object, and taking it out is
+what such captures want too.
 The cells found are kept in `.sara/static-cells.npz`, so that a run killed while taking the
 keypoints out takes out the same ones when it resumes.
 """
@@ -46,6 +49,11 @@ MIN_PATCH = 6
 #: stay put in fewer images than the rest, but lie between them
 JOIN_CELLS = 12
 MARGIN_CELLS = 3
+#: a patch is an overlay's when STILL_SHARE of its keypoints come back within STILL_PX of their
+#: position in at least half of the other images (`_still`), judged on at most STILL_IMAGES images
+STILL_PX = 0.5
+STILL_SHARE = 0.1
+STILL_IMAGES = 40
 CELLS_NAME = "static-cells.npz"
 
 
@@ -96,7 +104,41 @@ def static_grid(keypoints: list[np.ndarray], width: int, height: int) -> np.ndar
         counts[_around(np.unique(_cells(xy, width, height)), gw, gh)] += 1
     density = float(counts.sum()) / (len(keypoints) * gw * gh) if keypoints else 0.0
     full = (counts >= needed_count(len(keypoints), density, gw * gh)).reshape(gh, gw)
-    return _boxes(_patches(full, MIN_PATCH))
+    return _boxes(_still(_patches(full, MIN_PATCH), keypoints, width, height))
+
+
+def _still(patches: np.ndarray, keypoints: list[np.ndarray], width: int, height: int) -> np.ndarray:
+    """`patches` without those whose keypoints drift: an overlay's pixels are the same in every frame,
+    so some of its keypoints come back at the same position to a fraction of a pixel (STILL_SHARE of
+    them within STILL_PX of one in at least half of the other images); the distant scene ahead of a
+    camera driving straight drifts slowly out from the point it heads for, and in a short clip stays
+    in its cells too (kitti-seq1's first 26 frames: three patches there, their stillest tenth of
+    keypoints 1.4-1.7 px away in half the frames; a dashcam's overlay on the same frames: 0.00-0.09)."""
+    from scipy import ndimage
+    from scipy.spatial import cKDTree
+
+    labels, num = ndimage.label(patches, structure=np.ones((3, 3), bool))
+    if num == 0:
+        return patches
+    gw, gh = _grid_w(width), _grid_h(height)
+    sample = keypoints[::max(1, len(keypoints) // STILL_IMAGES)]  # a long video costs what STILL_IMAGES do
+    cells = [_cells(xy, width, height) if len(xy) else np.zeros(0, np.int64) for xy in sample]
+    keep = np.zeros(num + 1, bool)
+    for label in range(1, num + 1):
+        near = np.zeros(gw * gh, bool)
+        near[_around(np.flatnonzero(labels.ravel() == label), gw, gh)] = True
+        inside = [np.asarray(xy, np.float64)[near[c]] for xy, c in zip(sample, cells)]
+        points, image = np.concatenate(inside), np.repeat(np.arange(len(inside)), [len(i) for i in inside])
+        others = sum(len(i) > 0 for i in inside) - 1
+        if others < 1:
+            continue
+        close = cKDTree(points).query_pairs(STILL_PX, output_type="ndarray")
+        a, b = np.concatenate([close[:, 0], close[:, 1]]), np.concatenate([close[:, 1], close[:, 0]])
+        apart = image[a] != image[b]
+        seen = np.unique(a[apart] * len(inside) + image[b[apart]])  # (point, another image it comes back in)
+        comes_back = np.bincount(seen // len(inside), minlength=len(points))
+        keep[label] = np.mean(2 * comes_back >= others) >= STILL_SHARE
+    return keep[labels]
 
 
 def _boxes(static: np.ndarray) -> np.ndarray:

@@ -24,7 +24,6 @@ in the shared scenes' short sequences they gained nothing (see SequenceConfig).
 
 from __future__ import annotations
 
-import re
 from collections import defaultdict
 from dataclasses import dataclass, field
 from typing import Any
@@ -33,9 +32,8 @@ import numpy as np
 
 from ...config import SequenceConfig
 from ...descriptors import top_k_cosine
+from ...io.numbered import numbered
 
-#: (anything)(the last run of digits)(no digit up to the end): the frame number of a name
-FRAME_NUMBER = re.compile(r"^(?P<prefix>.*?)(?P<number>\d+)(?P<suffix>\D*)$")
 #: fewest frames of a sequence; shorter runs of numbered names are not an order worth using
 MIN_FRAMES = 3
 #: share of the names a set of sequences must cover to order the capture
@@ -79,11 +77,9 @@ def frame_orders(names: list[str]) -> list[list[int]]:
     names cover less than MIN_COVERED of them."""
     groups: dict[tuple[str, str], list[tuple[int, int]]] = defaultdict(list)
     for i, name in enumerate(names):
-        stem, dot, ext = name.rpartition(".")
-        match = FRAME_NUMBER.match(stem if dot else name)
-        if match:
-            key = (match["prefix"], match["suffix"] + (dot + ext.lower() if dot else ""))
-            groups[key].append((int(match["number"]), i))
+        found = numbered(name)
+        if found is not None:
+            groups[found[0]].append((found[1], i))
     orders = [[i for _, i in sorted(group)] for _, group in sorted(groups.items()) if len(group) >= MIN_FRAMES]
     covered = sum(map(len, orders))
     return orders if names and covered >= MIN_COVERED * len(names) else []
