@@ -71,3 +71,26 @@ def test_dashcam_standin_draws_the_overlay_and_keeps_the_poses(five_view_scene, 
             box = np.asarray(drawn.convert("L"))[12:48, 12:228]
             assert (box == 0).mean() > 0.5 and not np.array_equal(np.asarray(drawn), np.asarray(plain))
     assert (dest / "gt" / "images.txt").read_text() == (scene / "gt" / "images.txt").read_text()
+
+
+def test_clips_standin_as_frames_names_them_by_clip_and_turns_the_poses(five_view_scene, tmp_path):
+    """`video_clips_standin.py --images` (docs/results.md): each clip's frames as PNG images named by
+    clip, the turned clip's frames turned, and the true model under those names, its poses turned too."""
+    scene = five_view_scene[0].parent
+    dest = tmp_path / "frames"
+    _run("video_clips_standin.py", scene, dest, "--turns", "0,1", "--images")
+    names = sorted(p.name for p in (dest / "images").iterdir())
+    assert [n.split("_")[0] for n in names] == ["clip0"] * 3 + ["clip1"] * 2 and not (dest / "clips").exists()
+    with Image.open(scene / "images" / sorted(p.name for p in (scene / "images").iterdir())[0]) as plain:
+        width, height = plain.size
+    sizes = {n: Image.open(dest / "images" / n).size for n in names}
+    assert {sizes[n] for n in names[:3]} == {(width, height)} and {sizes[n] for n in names[3:]} == {(height, width)}
+    rec, plain_rec = _model(dest / "gt"), _model(scene / "gt")
+    assert sorted(im.name for im in rec.images.values()) == names
+    quarter = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # the camera turned with the picture
+    by_name = {im.name: im.cam_from_world() for im in rec.images.values()}
+    originals = [im.cam_from_world() for im in sorted(plain_rec.images.values(), key=lambda im: im.name)]
+    for k, name in enumerate(names):
+        turn = quarter if name.startswith("clip1") else np.eye(3)
+        assert np.allclose(by_name[name].rotation.matrix(), turn @ originals[k].rotation.matrix(), atol=1e-6)
+        assert np.allclose(by_name[name].translation, turn @ originals[k].translation, atol=1e-6)
