@@ -163,7 +163,8 @@ def test_frames_of_several_videos_get_a_camera_per_video(tmp_path: Path):
 
 def test_numbered_sequences_of_one_size_get_a_camera_each(tmp_path: Path):
     """Frames a user extracted from two clips (`clip0_0001.png`, ...; no EXIF): a camera per
-    sequence, each of one size; the rule holds within a sequence what `single` asks of a folder."""
+    sequence, each of one size; the rule holds within a sequence what `single` asks of a folder.
+    Frames of clips of one size get a camera per clip too, as the frames of videos do."""
     clips, collection, short = tmp_path / "clips", tmp_path / "collection", tmp_path / "short"
     for folder in (clips, collection, short):
         folder.mkdir()
@@ -179,6 +180,17 @@ def test_numbered_sequences_of_one_size_get_a_camera_each(tmp_path: Path):
     assert mode == "per_sequence"
     assert groups == {n: f"frames clip{n[4]}_#.png" for n in images.names if n.startswith("clip")}
     assert _mode(collection) == "per_image" and _mode(short) == "per_image"
+    same, one = tmp_path / "same", tmp_path / "one"  # clips of one size: a zoom or another lens may differ
+    for folder in (same, one):
+        folder.mkdir()
+    for k in range(3):
+        _photo(same / f"wide_{k:04d}.png")
+        _photo(same / f"main_{k:04d}.png")
+        _photo(one / f"frame_{k:05d}.png")
+    assert _mode(same) == "per_sequence" and _mode(one) == "single"
+    frames_of_one_video = scan_images(same, progress=False)
+    assert camera_sharing(frames_of_one_video, ExtractConfig(), dict.fromkeys(frames_of_one_video.names, "v.mp4")) \
+        == ("single", None)  # sara's own frames of one video: the video says
     for k in range(2):  # two frames of one more clip: too few to tell a clip
         _photo(short / f"c_{k}.png", size=(32, 32))
     assert _mode(short) == "per_image"

@@ -1,9 +1,10 @@
 """A folder of clips cut from one image sequence, as a user brings the videos of a phone: each clip
-its own video, of its own size (`--scale`) or turned a quarter as a phone held upright (`--turns`),
+its own video, of its own size (`--scale`), turned a quarter as a phone held upright (`--turns`), or
+filmed with a longer lens at the same size (`--zoom`: the centre 1 / z of each frame, enlarged back),
 with the ground truth of the frames, so that the run on the folder is scored against true poses.
 
     python lab/scripts/video_clips_standin.py ../shared/data/kitti-seq1 DEST --clips 2 [--scale 1,0.8]
-        [--turns 0,1] [--quality 95] [--images]
+        [--turns 0,1] [--zoom 1,1.25] [--quality 95] [--images]
     sara run DEST/clips OUT --frames N --gt DEST/gt
     sara run DEST/images OUT --gt DEST/gt          # with --images
 
@@ -86,6 +87,7 @@ def main() -> None:
     parser.add_argument("--clips", type=int, default=2)
     parser.add_argument("--scale", default="", help="per clip, comma-separated (default 1 each)")
     parser.add_argument("--turns", default="", help="per clip, quarter turns clockwise (default 0 each)")
+    parser.add_argument("--zoom", default="", help="per clip, focal length over the scene's (default 1 each)")
     parser.add_argument("--fps", type=float, default=10.0)
     parser.add_argument("--quality", type=int, default=95)
     parser.add_argument("--images", action="store_true", help="write each clip's frames as PNG images, not a video")
@@ -93,8 +95,9 @@ def main() -> None:
     names = list_image_files(args.scene / "images")
     scales = [float(v) for v in args.scale.split(",")] if args.scale else [1.0] * args.clips
     turns = [int(v) for v in args.turns.split(",")] if args.turns else [0] * args.clips
-    if len(scales) != args.clips or len(turns) != args.clips:
-        raise SystemExit("--scale and --turns take one value per clip")
+    zooms = [float(v) for v in args.zoom.split(",")] if args.zoom else [1.0] * args.clips
+    if len(scales) != args.clips or len(turns) != args.clips or len(zooms) != args.clips:
+        raise SystemExit("--scale, --turns and --zoom take one value per clip")
     clips_dir = args.dest / ("images" if args.images else "clips")
     clips_dir.mkdir(parents=True, exist_ok=True)
     rename, turned, listing = {}, {}, []
@@ -103,6 +106,10 @@ def main() -> None:
         frames = []
         for name in part:
             frame = cv2.imread(str(args.scene / "images" / name))
+            if zooms[k] != 1.0:  # the centre enlarged about the image centre: a longer lens
+                h, w = frame.shape[:2]
+                M = np.array([[zooms[k], 0.0, (1 - zooms[k]) * w / 2], [0.0, zooms[k], (1 - zooms[k]) * h / 2]])
+                frame = cv2.warpAffine(frame, M, (w, h), flags=cv2.INTER_LINEAR)
             if scales[k] != 1.0:
                 frame = cv2.resize(frame, None, fx=scales[k], fy=scales[k], interpolation=cv2.INTER_AREA)
             frames.append(np.ascontiguousarray(np.rot90(frame, k=-turns[k])))
@@ -121,7 +128,7 @@ def main() -> None:
                 writer.write(frame)
             writer.release()
         listing.append({"video": None if args.images else path.name, "images": [str(n) for n in part],
-                        "size": [width, height], "scale": scales[k], "turns": turns[k]})
+                        "size": [width, height], "scale": scales[k], "turns": turns[k], "zoom": zooms[k]})
     gt = model.write_model(args.scene / "gt", args.dest / "gt", rename=rename, text=True)
     turn_poses(gt, turned)
     (args.dest / "clips.json").write_text(json.dumps(listing, indent=2) + "\n")

@@ -60,13 +60,15 @@ def camera_sharing(images: ImageSet, conf: ExtractConfig,
                    videos: dict[str, str] | None = None) -> tuple[str, dict[str, str] | None]:
     """(camera mode, image -> its group for the grouped modes). `auto`: one shared camera when every
     image has the same size and the same EXIF camera (make, model and focal lengths, or no EXIF at
-    all, as frames of one video); one camera per video (`per_video`) for frames of several videos
-    (`videos`: frame -> its video), which may come from other phones or the same phone turned; one
+    all, as frames of one video) and they are not frames of several numbered sequences; one camera
+    per video (`per_video`) for frames of several videos (`videos`: frame -> its video), which may
+    come from other phones or the same phone turned; one
     camera per phone (`per_exif`) for photos whose EXIF names their camera (make, model, focal
     length) when some of them share one and a size (a few phones, a phone held both ways); one camera
     per numbered sequence (`per_sequence`) for frames a user extracted from several clips (names that
     differ only by a frame number, each sequence of one size, without a camera in EXIF: `clip0_0001.png`,
-    ...), the phones grouped as well; else one camera per image: photos of the same size from different phones
+    ...; clips of one size too, which a phone's other lens or a zoom may have filmed), the phones
+    grouped as well; else one camera per image: photos of the same size from different phones
     must not share intrinsics."""
     if conf.camera_mode != "auto":
         if conf.camera_mode not in ("single", "per_image", "per_folder"):
@@ -76,12 +78,13 @@ def camera_sharing(images: ImageSet, conf: ExtractConfig,
     if videos and len({videos.get(n) for n in images.names}) > 1:
         return "per_video", videos
     exif = {n: exif_camera(images.root / n) for n in images.names}
-    if len({images.sizes[n] for n in images.names}) == 1 and len(set(exif.values())) == 1:
-        return "single", None
+    one_camera = len({images.sizes[n] for n in images.names}) == 1 and len(set(exif.values())) == 1
     phones = {n: _phone_key(cam, images.sizes[n]) for n, cam in exif.items() if cam.complete()}
-    frames = _sequence_groups(images, {n: cam for n, cam in exif.items() if not cam.complete()})
-    if frames:
+    frames = {} if videos else _sequence_groups(images, {n: cam for n, cam in exif.items() if not cam.complete()})
+    if len(set(frames.values())) > 1 or (frames and not one_camera):  # clips of one size may be zoomed apart
         return "per_sequence", {**frames, **phones}
+    if one_camera:
+        return "single", None
     if len(phones) - len(set(phones.values())) > 0:  # two photos or more from one phone held one way
         return "per_exif", phones
     return "per_image", None
