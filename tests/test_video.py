@@ -482,6 +482,32 @@ def test_frames_a_user_extracted_from_two_clips_get_a_camera_per_clip(video_scen
     assert len(cameras) == 9 and cameras["a_0005.png"] == cameras["a_0001.png"] != cameras["b_0001.png"]
 
 
+def test_a_clip_of_another_size_added_to_a_run_of_one_clip_gets_its_own_camera(video_scene, tmp_path, run_cli):
+    """A run on one clip's frames (one camera), then a second clip's frames turned upright added: an
+    update gives them a camera of their own; before, each new frame got its own camera."""
+    import sqlite3
+
+    clip, _ = video_scene
+    with video.open_video(clip) as capture:
+        frames = [frame for ok, frame in iter(capture.read, (False, None)) if ok]
+    folder, out = tmp_path / "frames", tmp_path / "out"
+    folder.mkdir()
+    for k, frame in enumerate(frames[:4]):
+        cv2.imwrite(str(folder / f"a_{k + 1:04d}.png"), frame)
+    assert run_cli("run", folder, out, "-q", "--workers", "1").code == 0
+    assert json.loads((out / "run.json").read_text())["stages"]["extract"]["camera_mode"] == "single"
+    for k, frame in enumerate(frames[2:]):
+        cv2.imwrite(str(folder / f"b_{k + 1:04d}.png"), np.ascontiguousarray(np.rot90(frame, k=-1)))
+    assert run_cli("run", folder, out, "-q", "--workers", "1").code == 0
+    record = json.loads((out / "run.json").read_text())
+    assert record["stages"]["extract"]["camera_mode"] == "per_sequence"
+    with sqlite3.connect(out / "database.db") as con:
+        cameras = dict(con.execute("SELECT name, camera_id FROM images"))
+    assert len(cameras) == 8 and len(set(cameras.values())) == 2
+    assert len({cameras[f"b_{k:04d}.png"] for k in range(1, 5)}) == 1 and cameras["b_0001.png"] != cameras["a_0001.png"]
+    assert record["stages"]["map"]["num_registered"] == 8, record["stages"]["map"]
+
+
 def _first_run_on_two_clips(video_scene, tmp_path, run_cli) -> tuple[list[np.ndarray], Path, Path]:
     """(the scene's frames, a folder of clips a.avi (frames 0-3) and b.avi (2-5), its run folder) after
     a first `sara run` on the folder."""

@@ -159,13 +159,16 @@ def update_features(conf: ExtractConfig, images: ImageSet, out_dir: Path, *, exe
     tic = time.perf_counter()
     change = compare(old_digests, digests, across_folders=_across_folders(info))
     grouped = camera_groups if conf.camera_mode == "auto" and camera_groups else None
-    if info.get("camera_mode") in ("per_exif", "per_sequence"):  # a photo joins its phone's camera, a frame its clip's
-        grouped = camera_sharing(images, conf)[1]
+    mode = info.get("camera_mode")  # a photo joins its phone's camera, a frame its clip's, a new clip gets one
+    if grouped is None and mode in ("single", "per_exif", "per_sequence"):  # (cameras are merged, never split)
+        mode, grouped = camera_sharing(images, conf)
     extracted, failed = _update_copies(conf, images, out_dir, change, info, executor, progress, grouped)
     focals = extract.check_added_videos(conf, _work(out_dir), grouped, change.to_extract) if camera_groups \
         and grouped else {}  # a clip added: its camera checked as a first run checks each video's
     colmap.copy_database(_work(out_dir) / extract.DB_NAME, _work(out_dir) / MATCHED_NAME)
     new_info = _new_info(out_dir, info, digests, extracted, failed, time.perf_counter() - tic)
+    if grouped and not camera_groups:
+        new_info["camera_mode"] = mode
     if camera_groups and grouped and len(set(grouped.values())) > 1:
         new_info["camera_mode"] = "per_video"
         new_info["focal_per_video"] = {**(info.get("focal_per_video") or {}), **focals}
