@@ -5,8 +5,6 @@ from __future__ import annotations
 import logging
 from typing import Any
 
-from ..cameras import GROUPED_MODES
-
 logger = logging.getLogger(__name__)
 
 #: SIFT keypoints per image (mean) under which a capture counts as low-texture: the shared scenes
@@ -49,8 +47,8 @@ def guessed_cameras(extract_info: dict[str, Any]) -> str:
     most of those have no EXIF focal length: each then starts from COLMAP's guess, and where the
     photos were cropped or zoomed that guess is wrong for each in its own way (empty otherwise)."""
     guessed, cameras = extract_info.get("cameras_guessed") or (0, 0)
-    if cameras < 2 or 2 * guessed <= cameras or extract_info.get("camera_mode") in GROUPED_MODES:
-        return ""  # frames of a clip share a camera: many views refine its one guess (and the focal check)
+    if cameras < 2 or 2 * guessed <= cameras or extract_info.get("camera_mode") in ("per_video", "per_sequence"):
+        return ""  # a camera per clip: its frames refine its one guess (and the focal check tests it)
     return (f"{guessed} of the {cameras} cameras (one per image: the images differ in size or EXIF camera) have no "
             "EXIF focal length: each starts from a guess, 1.2 times its image's longer side. If the photos were "
             "cropped or zoomed, that guess is wrong for each in its own way and no pair source gives good poses (a "
