@@ -188,6 +188,14 @@ def test_numbered_sequences_of_one_size_get_a_camera_each(tmp_path: Path):
         _photo(same / f"main_{k:04d}.png")
         _photo(one / f"frame_{k:05d}.png")
     assert _mode(same) == "per_sequence" and _mode(one) == "single"
+    on = tmp_path / "numbered_on"  # two clips' frames numbered on from one to the other
+    on.mkdir()
+    for k in range(7):
+        _photo(on / f"frame_{k:05d}.png", size=(64, 48) if k < 4 else (48, 64))
+    images = scan_images(on, progress=False)
+    mode, groups = camera_sharing(images, ExtractConfig())
+    assert mode == "per_sequence" and len(set(groups.values())) == 2
+    assert len({groups[f"frame_{k:05d}.png"] for k in range(4)}) == 1
     frames_of_one_video = scan_images(same, progress=False)
     assert camera_sharing(frames_of_one_video, ExtractConfig(), dict.fromkeys(frames_of_one_video.names, "v.mp4")) \
         == ("single", None)  # sara's own frames of one video: the video says

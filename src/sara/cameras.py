@@ -91,18 +91,26 @@ def camera_sharing(images: ImageSet, conf: ExtractConfig,
 
 
 def _sequence_groups(images: ImageSet, exif: dict[str, ExifCamera]) -> dict[str, str]:
-    """image -> its sequence, for the images in `exif` (those without a camera in EXIF) in numbered
-    sequences of `MIN_SEQUENCE_FRAMES` or more whose frames all have one size and one EXIF: the
-    frames of one clip, extracted by the user (`single`'s rule, held within each sequence). A
-    sequence of several sizes (a collection numbered 00000.jpg, ... from many cameras) is no clip."""
-    groups: dict[tuple[str, str], list[str]] = {}
+    """image -> its clip, for the images in `exif` (those without a camera in EXIF) in numbered
+    sequences: a sequence, in frame-number order, splits where the size or the EXIF changes, and is
+    a set of clips when every piece holds `MIN_SEQUENCE_FRAMES` frames or more (frames of two clips
+    numbered on from one to the other too); one piece is `single`'s rule held within the sequence.
+    A numbered collection from many cameras (`00000.jpg`, ...) changes size between neighbours: no clip."""
+    sequences: dict[tuple[str, str], list[tuple[int, str]]] = {}
     for name in exif:
         found = numbered(name)
         if found is not None:
-            groups.setdefault(found[0], []).append(name)
-    one_camera = {key: names for key, names in groups.items() if len(names) >= MIN_SEQUENCE_FRAMES
-                  and len({images.sizes[n] for n in names}) == 1 and len({exif[n] for n in names}) == 1}
-    return {n: f"frames {before}#{after}" for (before, after), names in one_camera.items() for n in names}
+            sequences.setdefault(found[0], []).append((found[1], name))
+    out: dict[str, str] = {}
+    for (before, after), frames in sequences.items():
+        names = [name for _, name in sorted(frames)]
+        camera = [(images.sizes[n], exif[n]) for n in names]
+        starts = [k for k in range(len(names)) if k == 0 or camera[k] != camera[k - 1]]
+        pieces = [names[a:b] for a, b in zip(starts, [*starts[1:], len(names)])]
+        if all(len(piece) >= MIN_SEQUENCE_FRAMES for piece in pieces):
+            out.update({n: f"frames {before}#{after}" + (f" from {piece[0]}" if len(pieces) > 1 else "")
+                        for piece in pieces for n in piece})
+    return out
 
 
 def _phone_key(camera: ExifCamera, size: tuple[int, int]) -> str:
