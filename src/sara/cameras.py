@@ -60,16 +60,15 @@ def camera_sharing(images: ImageSet, conf: ExtractConfig,
                    videos: dict[str, str] | None = None) -> tuple[str, dict[str, str] | None]:
     """(camera mode, image -> its group for the grouped modes). `auto`: one shared camera when every
     image has the same size and the same EXIF camera (make, model and focal lengths, or no EXIF at
-    all, as frames of one video) and they are not frames of several numbered sequences; one camera
-    per video (`per_video`) for frames of several videos (`videos`: frame -> its video), which may
-    come from other phones or the same phone turned; one
-    camera per phone (`per_exif`) for photos whose EXIF names their camera (make, model, focal
-    length) when some of them share one and a size (a few phones, a phone held both ways); one camera
-    per numbered sequence (`per_sequence`) for frames a user extracted from several clips (names that
-    differ only by a frame number, each sequence of one size, without a camera in EXIF: `clip0_0001.png`,
-    ...; clips of one size too, which a phone's other lens or a zoom may have filmed), the phones
-    grouped as well; else one camera per image: photos of the same size from different phones
-    must not share intrinsics."""
+    all, as frames of one video) and they are not frames of several clips; one camera per video
+    (`per_video`) for frames of several videos (`videos`: frame -> its video), which may come from
+    other phones or the same phone turned; one camera per clip (`per_sequence`) for frames a user
+    extracted from several clips (names that differ only by a frame number, without a camera in EXIF:
+    `clip0_0001.png`, ...; `_sequence_groups`), clips of one size too, which a phone's other lens or a
+    zoom may have filmed, the phones grouped as well; one camera per phone (`per_exif`) for photos
+    whose EXIF names their camera (make, model, focal length) when some of them share one and a size
+    (a few phones, a phone held both ways); else one camera per image: photos of the same size from
+    different phones must not share intrinsics."""
     if conf.camera_mode != "auto":
         if conf.camera_mode not in ("single", "per_image", "per_folder"):
             raise ValueError(f"unknown camera_mode {conf.camera_mode!r}; choose auto, single, per_image or "

@@ -60,8 +60,8 @@ class ExtractConfig:
     camera_mode: str = option("auto", choice("auto", "single", "per_image", "per_folder"), """How images share
         cameras. auto: one shared camera when all images have the same size and the same EXIF camera (make,
         model, focal; or no EXIF at all), one per video for the frames of a folder of videos, one per numbered
-        sequence of frames without EXIF (clip0_0001.png, ...: names differing by a frame number, each sequence
-        of one size; also clips of one size, which another lens or a zoom may have filmed), one per phone
+        sequence of frames without EXIF (clip0_0001.png, ...: names differing by a frame number, split where the
+        frame size changes; also clips of one size, which another lens or a zoom may have filmed), one per phone
         (EXIF make, model and focal lengths, and size: a phone held upright is another camera) when some
         photos share one, else one per image (photos from different phones).""",
                               advanced=False)
