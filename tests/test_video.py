@@ -468,7 +468,7 @@ def test_frames_a_user_extracted_from_two_clips_get_a_camera_per_clip(video_scen
     assert result.code == 0, result.err
     record = json.loads((out / "run.json").read_text())
     assert record["stages"]["extract"]["camera_mode"] == "per_sequence"
-    assert "2 cameras (one per numbered sequence of frames)" in (out / "report.md").read_text()
+    assert "2 cameras (one per clip of numbered frames)" in (out / "report.md").read_text()
     with sqlite3.connect(out / "database.db") as con:
         rows = con.execute("SELECT i.name, c.width, c.height, c.camera_id FROM images i JOIN cameras c "
                            "USING (camera_id)").fetchall()

@@ -126,7 +126,7 @@ def frames_summary(stage: dict[str, Any]) -> str:
 
 CAMERA_MODES = {"single": "one shared", "per_video": "one per video", "per_image": "one per image",
                 "per_folder": "one per folder", "per_exif": "one per phone, by EXIF",
-                "per_sequence": "one per numbered sequence of frames"}
+                "per_sequence": "one per clip of numbered frames"}
 
 
 def _cameras_note(extract_info: dict[str, Any]) -> str:
