@@ -205,6 +205,19 @@ def test_numbered_sequences_of_one_size_get_a_camera_each(tmp_path: Path):
     assert camera_sharing(images, ExtractConfig(camera_mode="per_image"))[0] == "per_image"  # as asked
 
 
+def test_an_update_of_one_camera_works_the_cameras_out_again_only_for_another_clip_or_size(tmp_path: Path):
+    from sara.cameras import may_leave_single
+
+    for k in range(4):
+        _photo(tmp_path / f"a_{k:04d}.png")
+    _photo(tmp_path / "b_0000.png")
+    images = scan_images(tmp_path, progress=False)
+    assert not may_leave_single(images, ["a_0003.png"])  # one more frame of the clip: no EXIF read
+    assert may_leave_single(images, ["b_0000.png"])  # another clip
+    _photo(tmp_path / "a_0004.png", size=(48, 64))
+    assert may_leave_single(scan_images(tmp_path, progress=False), ["a_0004.png"])  # another size
+
+
 @pytest.mark.parametrize("name, orientation, rotate", [("IMG_0001.HEIC", 1, False), ("IMG_0002.jpg", 6, True)])
 def test_copies_keep_the_exif_camera(tmp_path: Path, name, orientation, rotate):
     """Photos COLMAP cannot read (an iPhone's HEIC) and photos turned upright are read from copies:

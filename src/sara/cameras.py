@@ -89,6 +89,20 @@ def camera_sharing(images: ImageSet, conf: ExtractConfig,
     return "per_image", None
 
 
+def may_leave_single(images: ImageSet, added: list[str]) -> bool:
+    """Whether images `added` to a run of one shared camera may need cameras of their own (then
+    `camera_sharing` decides, reading every image's EXIF): another size among the images, or a
+    numbered sequence that none of the earlier images is in (another clip). Only names and sizes are
+    read, so an update of a large run of one camera stays cheap."""
+    added_set = set(added)
+
+    def sequences(names: list[str]) -> set[tuple[str, str]]:
+        return {found[0] for found in map(numbered, names) if found is not None}
+
+    return len({images.sizes[n] for n in images.names}) > 1 or \
+        bool(sequences(added) - sequences([n for n in images.names if n not in added_set]))
+
+
 def _sequence_groups(images: ImageSet, exif: dict[str, ExifCamera]) -> dict[str, str]:
     """image -> its clip, for the images in `exif` (those without a camera in EXIF) in numbered
     sequences: a sequence, in frame-number order, splits where the size or the EXIF changes, and is

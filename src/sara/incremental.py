@@ -32,7 +32,7 @@ from typing import Any
 import h5py
 
 from . import colmap, extract, overlay
-from .cameras import camera_sharing, share_per_group
+from .cameras import camera_sharing, may_leave_single, share_per_group
 from .colmap.model import write_model
 from .config import ExtractConfig
 from .execute import Executor
@@ -160,7 +160,8 @@ def update_features(conf: ExtractConfig, images: ImageSet, out_dir: Path, *, exe
     change = compare(old_digests, digests, across_folders=_across_folders(info))
     grouped = camera_groups if conf.camera_mode == "auto" and camera_groups else None
     mode = info.get("camera_mode")  # a photo joins its phone's camera, a frame its clip's, a new clip gets one
-    if grouped is None and mode in ("single", "per_exif", "per_sequence"):  # (cameras are merged, never split)
+    if grouped is None and (mode in ("per_exif", "per_sequence") or mode == "single" and may_leave_single(
+            images, change.to_extract)):  # (cameras are merged, never split)
         mode, grouped = camera_sharing(images, conf)
     extracted, failed = _update_copies(conf, images, out_dir, change, info, executor, progress, grouped)
     focals = extract.check_added_videos(conf, _work(out_dir), grouped, change.to_extract) if camera_groups \
