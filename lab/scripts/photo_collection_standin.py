@@ -9,10 +9,13 @@ stands in for photos of one place from many people's cameras, with none of their
 With `--crop F` each photo is first cut to a random window of F to 1 of its width and height at a
 random place (a zoomed or cropped photo: its own field of view, its principal point off the
 centre; the true intrinsics follow), and with `--occluders K` up to K random opaque ellipses of
-2-15% of its area are drawn on it (people and cars in front of the building).
+2-15% of its area are drawn on it (people and cars in front of the building). With `--frames K`, K
+neighbouring images (in name order, from a random place) are a video's frames instead, as a user
+extracts them: one size (half the scene's), no other change, PNG named `video_f000000.png`, ... and
+no EXIF, like the photos.
 
     python lab/scripts/photo_collection_standin.py ../shared/data/strecha-castle-P30 DEST [--seed 1]
-        [--crop 0.5] [--occluders 3]
+        [--crop 0.5] [--occluders 3] [--frames 10]
 
 DEST gets images/, gt/ (COLMAP text) and SCENE.md (how it was made).
 """
@@ -70,10 +73,15 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--crop", type=float, default=1.0, help="smallest share of width and height kept (1: none)")
     parser.add_argument("--occluders", type=int, default=0, help="most occluding ellipses per photo")
+    parser.add_argument("--frames", type=int, default=0, help="neighbouring images written as a video's frames")
     args = parser.parse_args()
     rng = np.random.default_rng(args.seed)
     gt = pycolmap.Reconstruction()
     gt.read_text(str(args.scene / "gt"))
+    by_name = sorted(gt.images, key=lambda i: gt.images[i].name)
+    first = int(rng.integers(0, len(by_name) - args.frames + 1)) if args.frames else 0
+    frames = {image_id: f"video_f{k:06d}.png" for k, image_id in enumerate(by_name[first:first + args.frames])}
+    names = {}
     (args.dest / "images").mkdir(parents=True, exist_ok=True)
     (args.dest / "gt").mkdir(parents=True, exist_ok=True)
     out = pycolmap.Reconstruction()
@@ -81,11 +89,19 @@ def main() -> None:
     for image_id in sorted(gt.images):
         image = gt.images[image_id]
         original = Image.open(args.scene / "images" / image.name).convert("RGB")
-        cut, x0, y0 = crop(original, rng, args.crop)
-        photo, scale, quality = perturb(cut, rng)
-        photo = occlude(photo, rng, args.occluders) if args.occluders else photo
-        name = Path(image.name).with_suffix(".jpg").name
-        photo.save(args.dest / "images" / name, quality=quality)
+        if image_id in frames:  # a video's frame: half size, nothing else changed
+            x0 = y0 = 0
+            cut, quality = original, 100
+            photo = original.resize((round(original.width / 2), round(original.height / 2)), Image.LANCZOS)
+            scale = photo.width / original.width
+            names[image_id] = frames[image_id]
+            photo.save(args.dest / "images" / names[image_id])
+        else:
+            cut, x0, y0 = crop(original, rng, args.crop)
+            photo, scale, quality = perturb(cut, rng)
+            photo = occlude(photo, rng, args.occluders) if args.occluders else photo
+            names[image_id] = Path(image.name).with_suffix(".jpg").name
+            photo.save(args.dest / "images" / names[image_id], quality=quality)
         fx, fy, cx, cy = gt.cameras[image.camera_id].params[:4]
         camera = pycolmap.Camera(model="PINHOLE", width=photo.width, height=photo.height,
                                  params=[fx * scale, fy * scale, (cx - x0) * scale, (cy - y0) * scale],
@@ -104,14 +120,14 @@ def main() -> None:
             pose = image.cam_from_world()
             qx, qy, qz, qw = pose.rotation.quat
             tx, ty, tz = pose.translation
-            name = Path(image.name).with_suffix(".jpg").name
-            f.write(f"{image_id} {qw} {qx} {qy} {qz} {tx} {ty} {tz} {image_id} {name}\n\n")
+            f.write(f"{image_id} {qw} {qx} {qy} {qz} {tx} {ty} {tz} {image_id} {names[image_id]}\n\n")
     (args.dest / "gt" / "points3D.txt").write_text("")
     (args.dest / "SCENE.md").write_text(
         f"Photo-collection stand-in of {args.scene.name} (lab/scripts/photo_collection_standin.py, seed "
         f"{args.seed}): each image rescaled by 0.35-1, brightness x0.5-1.5, contrast x0.6-1.4, saturation "
         "x0.3-1.7, gamma 0.6-1.6, JPEG quality 50-90; one PINHOLE camera per image, intrinsics scaled; "
-        f"cropped first to {args.crop}-1 of each side; up to {args.occluders} occluding ellipses.\n"
+        f"cropped first to {args.crop}-1 of each side; up to {args.occluders} occluding ellipses; "
+        f"{args.frames} neighbouring images as a video's frames at half size (video_f*.png).\n"
         "image_id width height scale quality crop_x crop_y crop_width crop_height:\n" + "\n".join(lines) + "\n")
 
 
