@@ -115,3 +115,24 @@ def test_clips_standin_zooms_a_clip_about_the_image_centre(five_view_scene, tmp_
     for (a, b) in zip(sorted(rec.images.values(), key=lambda im: im.name),
                       sorted(plain_rec.images.values(), key=lambda im: im.name)):
         assert np.allclose(a.cam_from_world().matrix(), b.cam_from_world().matrix())
+
+
+def test_photo_collection_standin_with_a_videos_frames(five_view_scene, tmp_path):
+    """`photo_collection_standin.py --frames 3` (docs/results.md): three neighbouring images as a
+    video's frames at half size, named in order, the others photos of their own sizes; the true
+    model names them all and scales the frames' intrinsics, the poses unchanged."""
+    scene = five_view_scene[0].parent
+    dest = tmp_path / "mixed"
+    _run("photo_collection_standin.py", scene, dest, "--frames", "3")
+    frames = sorted(p.name for p in (dest / "images").glob("video_f*.png"))
+    assert frames == [f"video_f{k:06d}.png" for k in range(3)]
+    rec, plain = _model(dest / "gt"), _model(scene / "gt")
+    assert len(rec.images) == len(plain.images) == len(list((dest / "images").iterdir()))
+    for name in frames:
+        image = next(im for im in rec.images.values() if im.name == name)
+        original = plain.images[image.image_id]
+        camera, plain_camera = rec.cameras[image.camera_id], plain.cameras[original.camera_id]
+        assert Image.open(dest / "images" / name).size == (camera.width, camera.height)
+        assert abs(camera.width - plain_camera.width / 2) <= 1
+        assert np.allclose(camera.params[0], plain_camera.params[0] * camera.width / plain_camera.width)
+        assert np.allclose(image.cam_from_world().matrix(), original.cam_from_world().matrix())
