@@ -205,7 +205,7 @@ def test_numbered_sequences_of_one_size_get_a_camera_each(tmp_path: Path):
     assert camera_sharing(images, ExtractConfig(camera_mode="per_image"))[0] == "per_image"  # as asked
 
 
-def test_an_update_of_one_camera_works_the_cameras_out_again_only_for_another_clip_or_size(tmp_path: Path):
+def test_an_update_of_one_camera_works_the_cameras_out_again_only_for_another_clip_size_or_phone(tmp_path: Path):
     from sara.cameras import may_leave_single
 
     for k in range(4):
@@ -216,6 +216,15 @@ def test_an_update_of_one_camera_works_the_cameras_out_again_only_for_another_cl
     assert may_leave_single(images, ["b_0000.png"])  # another clip
     _photo(tmp_path / "a_0004.png", size=(48, 64))
     assert may_leave_single(scan_images(tmp_path, progress=False), ["a_0004.png"])  # another size
+    phones = tmp_path / "phones"
+    phones.mkdir()
+    for k in range(3):
+        _photo(phones / f"IMG_{k:04d}.JPG", make="Apple", model="iPhone 13", focal=5.1)
+    _photo(phones / "IMG_0100.JPG", make="Google", model="Pixel 7", focal=6.8)
+    _photo(phones / "IMG_0101.JPG", make="Apple", model="iPhone 13", focal=5.1)
+    images = scan_images(phones, progress=False)
+    assert may_leave_single(images, ["IMG_0100.JPG"])  # another phone, its photos of the same size
+    assert not may_leave_single(images, ["IMG_0101.JPG"])
 
 
 @pytest.mark.parametrize("name, orientation, rotate", [("IMG_0001.HEIC", 1, False), ("IMG_0002.jpg", 6, True)])

@@ -91,16 +91,20 @@ def camera_sharing(images: ImageSet, conf: ExtractConfig,
 
 def may_leave_single(images: ImageSet, added: list[str]) -> bool:
     """Whether images `added` to a run of one shared camera may need cameras of their own (then
-    `camera_sharing` decides, reading every image's EXIF): another size among the images, or a
-    numbered sequence that none of the earlier images is in (another clip). Only names and sizes are
-    read, so an update of a large run of one camera stays cheap."""
+    `camera_sharing` decides, reading every image's EXIF): another size among the images, a numbered
+    sequence that none of the earlier images is in (another clip), or another EXIF camera than the
+    earlier images' (another phone). Only the added images' EXIF is read, and one earlier image's, so
+    an update of a large run of one camera stays cheap."""
     added_set = set(added)
+    earlier = [n for n in images.names if n not in added_set]
 
     def sequences(names: list[str]) -> set[tuple[str, str]]:
         return {found[0] for found in map(numbered, names) if found is not None}
 
-    return len({images.sizes[n] for n in images.names}) > 1 or \
-        bool(sequences(added) - sequences([n for n in images.names if n not in added_set]))
+    if len({images.sizes[n] for n in images.names}) > 1 or sequences(added) - sequences(earlier):
+        return True
+    reference = exif_camera(images.root / earlier[0]) if earlier else None
+    return reference is not None and any(exif_camera(images.root / n) != reference for n in added)
 
 
 def _sequence_groups(images: ImageSet, exif: dict[str, ExifCamera]) -> dict[str, str]:
