@@ -415,6 +415,12 @@ def test_sara_run_on_a_video_resumes_and_refuses_other_settings(video_scene, tmp
     assert sorted(p.name for p in (out / "images").iterdir()) == names  # nothing mixed in
 
 
+def _decoded(clip: Path) -> list[np.ndarray]:
+    """Every frame of `clip`, as OpenCV decodes it."""
+    with video.open_video(clip) as capture:
+        return [frame for ok, frame in iter(capture.read, (False, None)) if ok]
+
+
 def test_clips_of_two_sizes_get_a_camera_each_and_one_model(video_scene, tmp_path, run_cli):
     """A folder of two clips, the second filmed with the phone upright (its frames turned): the
     frames of each clip share one camera. Before, images of two sizes got a camera each, and two
@@ -422,8 +428,7 @@ def test_clips_of_two_sizes_get_a_camera_each_and_one_model(video_scene, tmp_pat
     import sqlite3
 
     clip, _ = video_scene
-    with video.open_video(clip) as capture:
-        frames = [frame for ok, frame in iter(capture.read, (False, None)) if ok]
+    frames = _decoded(clip)
     clips = tmp_path / "clips"
     clips.mkdir()
     write_video(clips / "a.avi", frames[:4])
@@ -457,8 +462,7 @@ def test_frames_a_user_extracted_from_clips_get_a_camera_per_clip(video_scene, t
     import sqlite3
 
     clip, _ = video_scene
-    with video.open_video(clip) as capture:
-        frames = [frame for ok, frame in iter(capture.read, (False, None)) if ok]
+    frames = _decoded(clip)
     folder, out = tmp_path / "frames", tmp_path / "out"
     folder.mkdir()
     for k, frame in enumerate(frames[:4]):
@@ -485,8 +489,7 @@ def _first_run_on_two_clips(video_scene, tmp_path, run_cli) -> tuple[list[np.nda
     """(the scene's frames, a folder of clips a.avi (frames 0-3) and b.avi (2-5), its run folder) after
     a first `sara run` on the folder."""
     clip, _ = video_scene
-    with video.open_video(clip) as capture:
-        frames = [frame for ok, frame in iter(capture.read, (False, None)) if ok]
+    frames = _decoded(clip)
     clips, out = tmp_path / "clips", tmp_path / "out"
     clips.mkdir()
     write_video(clips / "a.avi", frames[:4])
