@@ -172,9 +172,10 @@ def test_the_report_says_when_the_lens_distortion_was_held(sara_run: Path):
 
 
 def test_the_report_keeps_the_runs_advice_and_the_two_view_points(sara_run: Path):
-    """The warnings given before matching (cameras from guessed focal lengths, SIFT starved) and an
-    update's counts are in an Advice section, absent when the run gave none; a model that needed the
-    points seen in two views says so in the Reconstruction section."""
+    """The warnings given before matching (cameras from guessed focal lengths, SIFT starved), after
+    mapping (views moving straight ahead) and an update's counts are in an Advice section, absent
+    when the run gave none; a model that needed the points seen in two views says so in the
+    Reconstruction section."""
     from sara.report import sections
 
     data = load_run(sara_run)
@@ -183,9 +184,10 @@ def test_the_report_keeps_the_runs_advice_and_the_two_view_points(sara_run: Path
     data.run["stages"]["update"] = {"num_added": 0, "num_removed": 0, "num_changed": 0, "num_renamed": 2}
     data.run["stages"]["map"]["two_view_points"] = True
     data.run["stages"]["extract"]["panoramas"] = data.run["stages"]["extract"]["num_images"]
+    data.run["stages"]["map"]["forward_start"] = True
     text = sections.advice(data)
     assert "<h2>Advice</h2>" in text and "5 of the 5 cameras" in text and "2 renamed" in text
-    assert "360-degree camera" in text
+    assert "360-degree camera" in text and "move along their optical axes" in text
     assert ">points</th><td>those seen in two views only" in sections.reconstruction(data)
 
 

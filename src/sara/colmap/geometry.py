@@ -35,6 +35,11 @@ class CameraInfo:
         """The mean of the focal lengths along x and y, in pixels."""
         return mean_focal_px(self)
 
+    def is_fisheye(self) -> bool:
+        """Whether the model is one of COLMAP's fisheye models (OPENCV_FISHEYE, ...): the pinhole's
+        field of view and focal-length estimates do not hold for it."""
+        return bool(_pycolmap_camera(self).is_perspective_fisheye())
+
 
 @functools.lru_cache(maxsize=64)
 def _pycolmap_camera(camera: CameraInfo) -> pycolmap.Camera:

@@ -3,12 +3,16 @@ fundamental matrix of given correspondences."""
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import numpy as np
 import pycolmap
 
+from .database import fisheye_focal_priors
 from .native import native_errors
+
+logger = logging.getLogger(__name__)
 
 #: the seed of the verification's RANSAC: COLMAP's default (-1) draws from a generator per thread,
 #: so a pair's inlier count depended on which thread verified it and what it had done before (two
@@ -24,6 +28,14 @@ def _verification_options(min_num_inliers: int) -> pycolmap.TwoViewGeometryOptio
     return opts
 
 
+def _fisheye_priors(db_path: Path) -> None:
+    """Before COLMAP verifies pairs: the fisheye cameras' focal lengths made priors (said once per camera)."""
+    if marked := fisheye_focal_priors(Path(db_path)):
+        logger.info("fisheye camera%s %s: COLMAP takes the focal length guess as a prior, since it verifies "
+                    "no pair of a fisheye camera without one; bundle adjustment refines it",
+                    "s" if len(marked) > 1 else "", ", ".join(map(str, marked)))
+
+
 def match_pairs(db_path: Path, pairs_path: Path, *, max_ratio: float, max_distance: float, cross_check: bool,
                 min_num_inliers: int, num_threads: int = -1) -> None:
     """COLMAP's SIFT matching and geometric verification of the pairs in a file.
@@ -36,6 +48,7 @@ def match_pairs(db_path: Path, pairs_path: Path, *, max_ratio: float, max_distan
     mopts.sift.max_distance = max_distance
     mopts.sift.cross_check = cross_check
     vopts = _verification_options(min_num_inliers)
+    _fisheye_priors(db_path)
     with native_errors("match the pairs", Path(db_path).parent):
         pycolmap.match_image_pairs(
             str(db_path), matching_options=mopts,
@@ -46,6 +59,7 @@ def match_pairs(db_path: Path, pairs_path: Path, *, max_ratio: float, max_distan
 
 def verify_pairs(db_path: Path, pairs_path: Path, *, min_num_inliers: int) -> None:
     """COLMAP's geometric verification of the stored matches of the pairs in a pairs file."""
+    _fisheye_priors(db_path)
     with native_errors("verify the matches", Path(db_path).parent):
         pycolmap.verify_matches(str(db_path), str(pairs_path), options=_verification_options(min_num_inliers))
 

@@ -56,6 +56,21 @@ def guessed_cameras(extract_info: dict[str, Any]) -> str:
             "fewer pairs per photo, worse): keep the photos' EXIF, or give one camera to images that share one")
 
 
+def forward_guess(extract_info: dict[str, Any], map_info: dict[str, Any]) -> str:
+    """Advice after mapping when the views move along their optical axes (the mapper could start
+    only from such a pair: `forward_start` in the map record) and the intrinsics were not given:
+    from such views bundle adjustment finds neither the principal point nor the focal length, and
+    the principal point's offset from the centre turns every translation direction (empty otherwise)."""
+    if not map_info.get("forward_start") or (extract_info.get("settings") or {}).get("camera_params"):
+        return ""
+    return ("The views move along their optical axes (a drive, or a walk straight ahead): from such views bundle "
+            "adjustment cannot find the camera's principal point, which starts at the image's centre, nor correct its "
+            "focal length well, and the principal point's offset turns every translation direction by about "
+            "offset / focal length. If you know the intrinsics (a calibration, a rectified dataset's), give them: -s "
+            "extract.camera_model=PINHOLE -s extract.camera_params=fx,fy,cx,cy (kitti-seq1, principal point 11 px off "
+            "the centre: AUC@1 / @5 0.03 / 0.79 without, 0.69 / 0.94 with its calibration)")
+
+
 def warn_low_texture(extract_info: dict[str, Any], backend: str) -> str:
     """Log `low_texture`'s warning (once per run) and return it."""
     text = low_texture(extract_info, backend)

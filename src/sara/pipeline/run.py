@@ -113,6 +113,8 @@ def _run_stages(conf: PipelineConfig, images: ImageSet, images_root: Path, out_d
     if source_rounds is not None:
         rounds.after_mapping(source_rounds)
     collect_stages(report, pairs_stage.current_key(conf, out_dir))
+    if ahead := advice.forward_guess(report.stages.get("extract", {}), report.stages.get("map", {})):
+        logger.warning(ahead)
     update = finish_update(out_dir, extract_key)
     if update is not None:
         report.stages["update"] = update

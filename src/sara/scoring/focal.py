@@ -226,7 +226,7 @@ def check_prior(db_path: Path, estimate_with: Callable[[int, int, float], FocalE
     stage's record; `label` names the video in the messages."""
     camera = colmap.shared_camera(db_path, names)
     of = f" of {label}" if label else ""
-    if camera is None or camera.has_prior_focal_length:  # EXIF gave the focal length
+    if camera is None or camera.has_prior_focal_length or camera.is_fisheye():  # EXIF gave it; or not a pinhole
         return None
     prior = float(camera.mean_focal_length())
     found = estimate_with(camera.width, camera.height, prior)
