@@ -59,14 +59,14 @@ def guessed_cameras(extract_info: dict[str, Any]) -> str:
 def forward_guess(extract_info: dict[str, Any], map_info: dict[str, Any]) -> str:
     """Advice after mapping when the views move along their optical axes (the mapper could start
     only from such a pair: `forward_start` in the map record) and the intrinsics were not given:
-    from such views bundle adjustment finds neither the principal point nor the focal length, and
-    the principal point's offset from the centre turns every translation direction (empty otherwise)."""
+    from such views bundle adjustment does not find the principal point (refining it there moved it
+    further off), and its offset from the centre turns every translation direction (empty otherwise)."""
     if not map_info.get("forward_start") or (extract_info.get("settings") or {}).get("camera_params"):
         return ""
     return ("The views move along their optical axes (a drive, or a walk straight ahead): from such views bundle "
-            "adjustment cannot find the camera's principal point, which starts at the image's centre, nor correct its "
-            "focal length well, and the principal point's offset turns every translation direction by about "
-            "offset / focal length. If you know the intrinsics (a calibration, a rectified dataset's), give them: -s "
+            "adjustment cannot find the camera's principal point, which stays at the image's centre, and its true "
+            "offset from there turns every translation direction by about offset / focal length. If you know the "
+            "intrinsics (a calibration, a rectified dataset's), give them: -s "
             "extract.camera_model=PINHOLE -s extract.camera_params=fx,fy,cx,cy (kitti-seq1, principal point 11 px off "
             "the centre: AUC@1 / @5 0.03 / 0.79 without, 0.69 / 0.94 with its calibration)")
 
