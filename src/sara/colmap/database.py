@@ -156,9 +156,9 @@ def fisheye_focal_priors(db_path: Path) -> list[int]:
     as a prior, its guess included; returns the cameras marked now. COLMAP 4 verifies the pairs of
     a fisheye camera only where its focal length is a prior: the fundamental matrix it falls back
     to otherwise assumes a pinhole, so it marks every such pair degenerate and no model is built.
-    Told it is a prior, it verifies on the cameras' rays, which a focal length off by a factor of
-    three leaves about as they are (the inlier counts of a fisheye drive's pairs moved by 0.04%),
-    and bundle adjustment still refines it."""
+    Told it is a prior, it verifies on the cameras' rays, and the guess hardly matters there (a
+    fisheye drive's 97 pairs: the same inlier matches to 0.01% with focal lengths from 0.56 to 1.7
+    times the true one); bundle adjustment still refines it."""
     marked = []
     with open_pycolmap_database(db_path) as db:
         for camera in db.read_all_cameras():

@@ -59,7 +59,7 @@ def known_field_of_view(db_path: Path, names: list[str], focal_estimate: dict[st
     fovs = []
     for name in names:
         camera = cameras.get(name)
-        if camera is None or camera.is_fisheye():  # its prior is a guess made a prior for COLMAP (match)
+        if camera is None or camera.is_fisheye():  # not a pinhole's angle; its prior may be the guess (match)
             continue
         if camera.has_prior_focal_length:
             fovs.append(focal.field_of_view_deg(float(camera.mean_focal_length()), camera.width, camera.height))
