@@ -9,6 +9,7 @@ they are go through SQLite instead (`database_queries`).
 from __future__ import annotations
 
 import contextlib
+import functools
 import os
 from collections.abc import Iterator
 from pathlib import Path
@@ -18,6 +19,7 @@ import numpy as np
 import pycolmap
 
 from ..io import atomic_path
+from .database_queries import camera_models
 from .geometry import CameraInfo
 from .native import native_errors
 
@@ -159,14 +161,26 @@ def fisheye_focal_priors(db_path: Path) -> list[int]:
     Told it is a prior, it verifies on the cameras' rays, and the guess hardly matters there (a
     fisheye drive's 97 pairs: the same inlier matches to 0.01% with focal lengths from 0.56 to 1.7
     times the true one); bundle adjustment still refines it."""
-    marked = []
-    with open_pycolmap_database(db_path) as db:
-        for camera in db.read_all_cameras():
-            if camera.is_perspective_fisheye() and not camera.has_prior_focal_length:
+    fisheye = _fisheye_model_ids()
+    marked = [camera_id for camera_id, (model, prior) in camera_models(db_path).items()
+              if model in fisheye and not prior]
+    if marked:  # pycolmap's open writes to the file: only where there is something to change
+        with open_pycolmap_database(db_path) as db:
+            for camera_id in marked:
+                camera = db.read_camera(camera_id)
                 camera.has_prior_focal_length = True
                 db.update_camera(camera)
-                marked.append(int(camera.camera_id))
     return marked
+
+
+@functools.lru_cache(maxsize=1)
+def _fisheye_model_ids() -> frozenset[int]:
+    """COLMAP's camera model ids of its fisheye models (pycolmap's `is_perspective_fisheye`)."""
+    ids = set()
+    for name, model_id in pycolmap.CameraModelId.__members__.items():
+        if int(model_id) >= 0 and pycolmap.Camera.create_from_model_name(0, name, 1.0, 2, 2).is_perspective_fisheye():
+            ids.add(int(model_id))
+    return frozenset(ids)
 
 
 # ---------------------------------------------------------------------------------------------

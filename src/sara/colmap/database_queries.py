@@ -156,6 +156,12 @@ def database_images(db_path: Path) -> dict[str, int]:
     return {name: int(image_id) for name, image_id in rows}
 
 
+def camera_models(db_path: Path) -> dict[int, tuple[int, bool]]:
+    """camera_id -> (COLMAP's model id, whether its focal length is a prior): read-only."""
+    (rows,) = _query(db_path, ("SELECT camera_id, model, prior_focal_length FROM cameras", ()), modes=("ro",))
+    return {int(camera_id): (int(model), bool(prior)) for camera_id, model, prior in rows}
+
+
 def camera_priors(db_path: Path) -> dict[int, bool]:
     """camera_id -> whether its focal length came with the images (EXIF): read-only, also while
     COLMAP writes the database in another process."""
