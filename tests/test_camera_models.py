@@ -41,3 +41,21 @@ def test_a_fisheye_camera_model_gets_its_pairs_verified_and_mapped(five_view_sce
     model = pycolmap.Reconstruction(out / "sparse" / "0")
     assert model.num_reg_images() == 5
     assert {camera.model.name for camera in model.cameras.values()} == {"OPENCV_FISHEYE"}
+
+
+def test_no_start_through_a_fisheye_model_names_the_default_camera(tmp_path: Path, monkeypatch):
+    """A straight drive through a fisheye model gave COLMAP's mapper no pair to start from (its angles
+    are measured with the lens's focal length), where the default camera mapped it whole: the exit
+    message says so when the cameras are fisheye, and only then."""
+    from sara import mapping
+    from sara.config import MapConfig
+
+    monkeypatch.setattr(colmap, "verified_graph", lambda db, min_inliers: (97, 51, [51], 711))
+    for model, said in (("OPENCV_FISHEYE", True), ("SIMPLE_RADIAL", False)):
+        db_path = tmp_path / f"{model}.db"
+        colmap.create_database(db_path)
+        with open_pycolmap_database(db_path) as db:
+            db.write_camera(pycolmap.Camera.create_from_model_name(0, model, 600.0, 640, 480))
+        reason = mapping.no_model_reason(db_path, MapConfig(), 15)
+        assert "no pair of views to start from among the 51 images" in reason
+        assert ("default camera model (SIMPLE_RADIAL)" in reason) == said

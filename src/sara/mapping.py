@@ -263,10 +263,13 @@ def no_model_reason(db_path: Path, conf: MapConfig, min_num_inliers: int) -> str
         return (f"the mapper found no pair of views to start from among the {linked}: the best pair has "
                 f"{most_inliers} inlier matches and COLMAP's mapper needs {need_inliers} to start a model")
     if conf.mapper == "incremental":
+        fisheye = ("; with a fisheye camera model COLMAP measures that angle with the lens's focal length, and a "
+                   "straight drive through a fisheye model gave no start where the default camera model "
+                   "(SIMPLE_RADIAL) mapped it whole" if colmap.fisheye_cameras(db_path) else "")
         return (f"the mapper found no pair of views to start from among the {linked} (the best has {most_inliers} "
                 f"inlier matches): COLMAP's mapper also needs {need_angle:g} degrees of triangulation angle between "
                 "them (a start from views that moved forward, and points seen in two views only, were tried too), and "
-                "these views are too close together, turn on the spot, or see a flat scene")
+                f"these views are too close together, turn on the spot, or see a flat scene{fisheye}")
     return f"the global mapper found no model among the {linked}"
 
 

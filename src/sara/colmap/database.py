@@ -161,9 +161,8 @@ def fisheye_focal_priors(db_path: Path) -> list[int]:
     Told it is a prior, it verifies on the cameras' rays, and the guess hardly matters there (a
     fisheye drive's 97 pairs: the same inlier matches to 0.01% with focal lengths from 0.56 to 1.7
     times the true one); bundle adjustment still refines it."""
-    fisheye = _fisheye_model_ids()
-    marked = [camera_id for camera_id, (model, prior) in camera_models(db_path).items()
-              if model in fisheye and not prior]
+    priors = {camera_id: prior for camera_id, (_, prior) in camera_models(db_path).items()}
+    marked = [camera_id for camera_id in fisheye_cameras(db_path) if not priors[camera_id]]
     if marked:  # pycolmap's open writes to the file: only where there is something to change
         with open_pycolmap_database(db_path) as db:
             for camera_id in marked:
@@ -171,6 +170,12 @@ def fisheye_focal_priors(db_path: Path) -> list[int]:
                 camera.has_prior_focal_length = True
                 db.update_camera(camera)
     return marked
+
+
+def fisheye_cameras(db_path: Path) -> list[int]:
+    """The database's cameras of a fisheye model (read with SQLite alone)."""
+    fisheye = _fisheye_model_ids()
+    return [camera_id for camera_id, (model, _) in camera_models(db_path).items() if model in fisheye]
 
 
 @functools.lru_cache(maxsize=1)
