@@ -157,8 +157,9 @@ def test_wide_lens_standin_shows_each_point_where_its_fisheye_camera_projects_it
     for image in source.images.values():
         name = Path(image.name).with_suffix(".png").name
         camera = source.cameras[image.camera_id]
+        size = (camera.width, camera.height)
         inside = [xyz for xyz in points if (image.cam_from_world() * xyz)[2] > 0
-                  and all(20 < c < m - 20 for c, m in zip(_pixel(source, image.name, xyz), (camera.width, camera.height)))]
+                  and all(20 < c < m - 20 for c, m in zip(_pixel(source, image.name, xyz), size))]
         assert len(inside) > 50
         plain = greys(scene / "images" / image.name, [_pixel(source, image.name, xyz) for xyz in inside[:80]])
         wide = greys(dest / "images" / name, [_pixel(made, name, xyz) for xyz in inside[:80]])
