@@ -68,7 +68,7 @@ def forward_guess(extract_info: dict[str, Any], map_info: dict[str, Any]) -> str
             "offset from there turns every translation direction by about offset / focal length. If you know the "
             "intrinsics (a calibration, a rectified dataset's), give them: -s "
             "extract.camera_model=PINHOLE -s extract.camera_params=fx,fy,cx,cy (kitti-seq1, principal point 11 px off "
-            "the centre: AUC@1 / @5 0.03 / 0.79 without, 0.69 / 0.94 with its calibration)")
+            "the centre: AUC@1 / @5 0.03 / 0.79 without, 0.68 / 0.94 with its calibration)")
 
 
 def warn_low_texture(extract_info: dict[str, Any], backend: str) -> str:
