@@ -161,8 +161,9 @@ def fisheye_focal_priors(db_path: Path) -> list[int]:
     Told it is a prior, it verifies on the cameras' rays, and the guess hardly matters there (a
     fisheye drive's 97 pairs: the same inlier matches to 0.01% with focal lengths from 0.56 to 1.7
     times the true one); bundle adjustment still refines it."""
-    priors = {camera_id: prior for camera_id, (_, prior) in camera_models(db_path).items()}
-    marked = [camera_id for camera_id in fisheye_cameras(db_path) if not priors[camera_id]]
+    fisheye = _fisheye_model_ids()
+    marked = [camera_id for camera_id, (model, prior) in camera_models(db_path).items()
+              if model in fisheye and not prior]
     if marked:  # pycolmap's open writes to the file: only where there is something to change
         with open_pycolmap_database(db_path) as db:
             for camera_id in marked:
