@@ -213,3 +213,31 @@ def test_the_rounds_continue_a_model_mapped_with_the_distortion_held_with_it_hel
         mapping.run(conf, tmp_path / "db", tmp_path, out, input_model=tmp_path / "model", progress=False)
         assert seen[-1] is not held
         assert records.done_info(out, mapping.STAGE)["distortion_held"] is held
+
+
+@pytest.mark.parametrize("fisheye, setting, held", [
+    (True, {}, True),     # a fisheye model: held from the first mapping on
+    (False, {}, False),   # the default camera: refined, as COLMAP does
+    (True, {"map.refine_distortion": "false"}, True),  # held anyway
+])
+def test_a_fisheye_camera_is_mapped_with_its_distortion_held(monkeypatch, tmp_path: Path, fisheye, setting, held):
+    """fountain-P11 through a fisheye lens, OPENCV_FISHEYE: the four distortion terms fitted to the
+    first model of SARA's few pairs left 7 of 11 views registered (0.28 / 0.36); held, 11 (0.69 /
+    0.94, exhaustive matching's). A first mapping of fisheye cameras holds them; the record says so."""
+    from sara import colmap, mapping
+    from sara.colmap.sfm import MappedModels
+    from sara.io import records
+
+    seen: list[bool] = []
+
+    def fake_map(conf, *args, **kwargs):
+        seen.append(conf.refine_distortion)
+        return MappedModels({0: _Rec(11)}), 11, 0.1
+
+    monkeypatch.setattr(mapping, "_map", fake_map)
+    monkeypatch.setattr(colmap, "fisheye_cameras", lambda db: [1] if fisheye else [])
+    monkeypatch.setattr(MappedModels, "write_by_size", lambda self, folder: [11])
+    monkeypatch.setattr(mapping, "_first_model_check", lambda recs, previous: {})
+    mapping.run(make_config("sift-offline", setting).map, tmp_path / "db", tmp_path, tmp_path / "out", progress=False)
+    assert seen == [not held]
+    assert records.done_info(tmp_path / "out", mapping.STAGE)["distortion_held"] is (held and not setting)

@@ -47,7 +47,9 @@ def run(conf: MapConfig, db_path: Path, images_root: Path, out_dir: Path, *, see
     `commit`, when given, runs once the new model exists (or the current one is up to date), just
     before it is swapped in: the pipeline moves the matches it was built from into place there.
     `starved`: the features starved and a camera is a guess (`pipeline.advice.starved`); with
-    `conf.hold_distortion_starved` a first mapping holds the distortion from the start.
+    `conf.hold_distortion_starved` a first mapping holds the distortion from the start. So does
+    one of fisheye cameras (their distortion starts as given: 0, the equidistant lens, without
+    camera_params); the rounds' refinements refine it once the model is whole.
     """
     out_dir = Path(out_dir)
     sparse = out_dir / "sparse"
@@ -62,11 +64,14 @@ def run(conf: MapConfig, db_path: Path, images_root: Path, out_dir: Path, *, see
     # the incremental mapper continues its own models, and those it built for a contradicted global one
     extend = input_model is not None and "incremental" in (conf.mapper, _mapped_by(previous))
     earlier = ((previous or {}).get("info") or {}) if extend else {}
+    fisheye = not extend and conf.refine_distortion and bool(colmap.fisheye_cameras(db_path))
     held = bool(earlier.get("distortion_held")) if extend else \
-        starved and conf.hold_distortion_starved and conf.refine_distortion
+        (starved and conf.hold_distortion_starved and conf.refine_distortion) or fisheye
     if held and not extend:
-        logger.warning("map: the lens distortion is held while mapping: few keypoints per image and a guessed "
-                       "camera do not pin it down (map.hold_distortion_starved)")
+        logger.warning("map: the lens distortion is held while mapping: %s", "a fisheye model's four distortion "
+                       "terms, fitted to a first model of few views, bent the lens (fountain-P11 through a fisheye: 7 "
+                       "of 11 views; held, 11)" if fisheye else "few keypoints per image and a guessed camera do not "
+                       "pin it down (map.hold_distortion_starved)")
     conf = replace(conf, refine_distortion=conf.refine_distortion and not held,  # as the model continued was mapped
                    two_view_points=conf.two_view_points or bool(earlier.get("two_view_points")))
     records.mark_started(out_dir, STAGE, key)
