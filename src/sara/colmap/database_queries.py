@@ -165,5 +165,4 @@ def camera_models(db_path: Path) -> dict[int, tuple[int, bool]]:
 def camera_priors(db_path: Path) -> dict[int, bool]:
     """camera_id -> whether its focal length came with the images (EXIF): read-only, also while
     COLMAP writes the database in another process."""
-    (rows,) = _query(db_path, ("SELECT camera_id, prior_focal_length FROM cameras", ()), modes=("ro",))
-    return {int(camera_id): bool(prior) for camera_id, prior in rows}
+    return {camera_id: prior for camera_id, (_, prior) in camera_models(db_path).items()}
