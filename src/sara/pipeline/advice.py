@@ -71,6 +71,15 @@ def forward_guess(extract_info: dict[str, Any], map_info: dict[str, Any]) -> str
             "the centre: AUC@1 / @5 0.03 / 0.79 without, 0.68 / 0.94 with its calibration)")
 
 
+def given(stages: dict[str, dict[str, Any]], backend: str) -> list[str]:
+    """Every piece of advice a finished run gave (SIFT starved; cameras from guessed focal lengths;
+    360-degree panoramas; views moving straight ahead without the intrinsics), from its stage records:
+    what the console said, for the run's reports."""
+    extract = stages.get("extract", {})
+    return [text for text in (low_texture(extract, backend), guessed_cameras(extract), panoramas(extract),
+                              forward_guess(extract, stages.get("map", {}))) if text]
+
+
 def warn_low_texture(extract_info: dict[str, Any], backend: str) -> str:
     """Log `low_texture`'s warning (once per run) and return it."""
     text = low_texture(extract_info, backend)

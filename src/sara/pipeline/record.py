@@ -12,7 +12,7 @@ from .. import __version__, colmap, mapping, match
 from ..eta import format_duration
 from ..io import records, write_json_atomic
 from ..tables import markdown_table
-from . import rounds
+from . import advice, rounds
 from .pairs_stage import STAGE as PAIRS_STAGE
 
 
@@ -166,6 +166,9 @@ def render_report(report: RunReport) -> str:
     notes = time_notes(s)
     if notes:
         lines += [""] + [f"- {note}" for note in notes]
+    said = advice.given(s, str(report.config.get("extract", {}).get("backend", "sift")))
+    if said:
+        lines += ["", "## Advice", ""] + [f"- {text}" for text in said]
     if report.skipped_images:
         lines += ["", "Skipped images:", ""] + [f"- `{n}`: {r}" for n, r in report.skipped_images.items()]
     if report.metrics:

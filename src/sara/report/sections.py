@@ -282,11 +282,8 @@ def advice(data: RunData) -> str:
     """What the run said before matching (SIFT starved; cameras from guessed focal lengths; 360-degree
     panoramas), after mapping (views moving straight ahead without the intrinsics) and what an update
     of the folder redid: the console's warnings, kept with the run."""
-    extract = data.stages.get("extract", {})
     backend = str(data.run.get("config", {}).get("extract", {}).get("backend", "sift"))
-    notes = [text for text in (run_advice.low_texture(extract, backend), run_advice.guessed_cameras(extract),
-                               run_advice.panoramas(extract),
-                               run_advice.forward_guess(extract, data.stages.get("map", {}))) if text]
+    notes = run_advice.given(data.stages, backend)
     update = data.stages.get("update")
     if isinstance(update, dict):
         notes.append(f"An update of a finished run: {update_summary(update)}")
