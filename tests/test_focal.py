@@ -263,6 +263,31 @@ def test_an_exif_focal_length_tells_the_field_of_view(tmp_path: Path):
     fov = known_field_of_view(tmp_path / "out" / "database.db", names, _estimate(tmp_path / "out"))
     assert fov == pytest.approx(np.degrees(2 * np.arctan(18 / 32)), abs=0.5)
     assert resolve_tree_overlap(_pair_context(tmp_path / "out", names)) == ("all", fov)
+    # ... unless the views move along their optical axes (a drive): then the paper's weight
+    assert resolve_tree_overlap(_pair_context(tmp_path / "out", names), axial=0.5) == ("all", fov)
+    assert resolve_tree_overlap(_pair_context(tmp_path / "out", names), axial=0.95) == ("best", fov)
+    assert resolve_tree_overlap(_pair_context(tmp_path / "out", names, "all"), axial=0.95) == ("all", fov)
+
+
+def test_axial_motion_is_the_median_over_the_accepted_pairs_with_a_pose():
+    """|cosine| of the baseline with the optical axis: rejected pairs and pairs without a pose (or
+    scores from before the direction was kept) do not count; too few say nothing."""
+    from sara.io.scores import PairScores
+    from sara.pairs.sara.field_of_view import MIN_AXIAL_PAIRS, axial_motion
+
+    ahead, aside = [0.05, 0.0, -0.99], [0.8, 0.6, 0.0]
+    rows = [(ahead, True)] * 4 + [(aside, True)] * 3 + [(aside, False)] * 5 + [([np.nan] * 3, True)] * 5
+    direction = np.array([d for d, _ in rows], dtype=np.float64)
+    scores = PairScores(name0=["a"] * len(rows), name1=["b"] * len(rows), num_matches=np.zeros(len(rows)),
+                        num_inliers=np.zeros(len(rows)), overlap=np.zeros(len(rows)), parallax_deg=np.zeros(len(rows)),
+                        weight=np.zeros(len(rows)), accepted=np.array([a for _, a in rows]), reason=[""] * len(rows),
+                        direction=2.0 * direction)  # any scale
+    assert axial_motion(scores) == pytest.approx(np.abs(np.array(ahead))[2] / np.linalg.norm(ahead))
+    scores.accepted[:4] = False  # three sideways pairs left: too few
+    assert 3 < MIN_AXIAL_PAIRS and axial_motion(scores) is None
+    scores.direction = None
+    scores.__post_init__()
+    assert axial_motion(scores) is None
 
 
 def _forward_fundamentals(f: float, width: int, height: int, num: int, seed: int = 0) -> list[np.ndarray]:

@@ -317,7 +317,8 @@ def test_killed_update_then_rerun_gives_the_uninterrupted_result(marker, scene, 
 
 def test_update_reuses_the_scores_of_unchanged_pairs_and_scores_the_others(monkeypatch):
     """Cached scores come back in the candidates' order (a pair stored the other way round with its
-    inverse rotation); only candidates without one are scored."""
+    inverse pose: the rotation inverted, the direction the other camera's centre seen from the
+    first); only candidates without one are scored."""
     from sara.io.scores import PairScores
     from sara.pairs.sara import source
 
@@ -326,9 +327,11 @@ def test_update_reuses_the_scores_of_unchanged_pairs_and_scores_the_others(monke
         return PairScores(name0=[a for a, _ in pairs], name1=[b for _, b in pairs],
                           num_matches=np.full(n, 50), num_inliers=np.full(n, 40), overlap=np.array(overlap, float),
                           parallax_deg=np.full(n, 5.0), weight=np.array(overlap, float), accepted=np.ones(n, bool),
-                          reason=[""] * n, rotvec=np.array(rotvec, float).reshape(n, 3))
+                          reason=[""] * n, rotvec=np.array(rotvec, float).reshape(n, 3),
+                          direction=np.tile([0.0, 0.0, 1.0], (n, 1)))
 
     cached = scores([("a", "b"), ("c", "b")], [0.1, 0.2], [[0, 0, 1], [0, 1, 0]])
+    cached.direction[1] = [1.0, 0.0, 0.0]  # c's centre seen from b, b turned 1 radian about y
     asked = []
 
     def fake_score(ctx, candidates):
@@ -341,7 +344,10 @@ def test_update_reuses_the_scores_of_unchanged_pairs_and_scores_the_others(monke
     assert list(zip(got.name0, got.name1)) == [("b", "c"), ("a", "d"), ("a", "b")]
     assert got.overlap.tolist() == [0.2, 0.9, 0.1]
     assert got.rotvec.tolist() == [[0, -1, 0], [1, 0, 0], [0, 0, 1]]
+    np.testing.assert_allclose(got.direction[0], [-np.cos(1.0), 0.0, -np.sin(1.0)])  # -R^T d
+    np.testing.assert_array_equal(got.direction[1:], [[0, 0, 1], [0, 0, 1]])
     assert cached.rotvec.tolist() == [[0, 0, 1], [0, 1, 0]]  # the cache itself unchanged
+    assert cached.direction.tolist() == [[0, 0, 1], [1, 0, 0]]
 
 
 def test_pairs_held_by_the_earlier_matches_are_copied_not_matched(copy_of_first):

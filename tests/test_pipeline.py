@@ -124,6 +124,7 @@ def test_weakly_matched_views_get_pairs_before_the_first_mapping(tmp_path: Path,
     # the report says how the spanning tree was ranked, and why
     tree = "the inliers among all matches" if pairs["tree_overlap"] == "all" else "the paper's weight"
     assert f"spanning tree by {tree} (" in (out / "report.md").read_text()
+    assert pairs["axial_motion"] < 0.9 and "moving along their optical axes" not in (out / "report.md").read_text()
     assert report.metrics["num_registered"] == 10
     caplog.clear()
     again = run(conf, images, out, gt_dir=gt, progress=False)

@@ -218,6 +218,18 @@ def test_score_pair_with_a_known_pose():
     assert score_pair(pair.view0, pair.view1, conf) == score  # deterministic
 
 
+@pytest.mark.parametrize("center1, axial", [((0.0, -5.0, 0.0), True), ((3.0, -8.0, 0.0), False)])
+def test_the_direction_is_camera_0s_centre_seen_from_camera_1(center1, axial):
+    """A step straight ahead (along both optical axes) and one to the side: the pose's unit
+    translation points at camera 0's centre in camera 1's frame, along its axis only in the first."""
+    pose1 = look_at(np.array(center1), np.zeros(3))
+    pair = synthetic_pair(pose1, num_true=60)
+    score = score_pair(pair.view0, pair.view1, ScoreConfig())
+    seen = pose1[0] @ (CENTER0 - np.array(center1))
+    assert np.degrees(np.arccos(np.dot(score.direction, seen) / np.linalg.norm(seen))) < 3.0
+    assert (abs(score.direction[2]) > 0.99) == axial and (abs(score.direction[2]) < 0.5) == (not axial)
+
+
 def test_a_pure_rotation_is_rejected_for_low_parallax():
     rotation = rotation_about_axis([0.3, 1.0, 0.2], 12.0) @ look_at(CENTER0, np.zeros(3))[0]
     pair = synthetic_pair((rotation, -rotation @ CENTER0))
@@ -398,9 +410,14 @@ def test_score_pairs_on_files_and_round_trip_through_csv(tmp_path):
     path = write_scores_csv(tmp_path / "scores.csv", scores, roles)
     header = path.read_text().splitlines()[0]
     assert header == ("name0,name1,num_matches,num_inliers,num_inliers_all,overlap,parallax_deg,weight,accepted,"
-                      "reason,role,rotvec_x,rotvec_y,rotvec_z")
+                      "reason,role,rotvec_x,rotvec_y,rotvec_z,direction_x,direction_y,direction_z")
     assert np.all(scores.num_inliers_all >= scores.num_inliers)
     assert np.all(np.isfinite(scores.rotvec[scores.accepted]))
+    centre_b = np.array([3.0, -8.0, 1.0])
+    R_b = look_at(centre_b, np.zeros(3))[0]
+    R_c = rotation_about_axis([0.0, 1.0, 0.2], 10.0) @ look_at(CENTER0, np.zeros(3))[0]
+    for k, seen in ((0, R_b @ (CENTER0 - centre_b)), (3, R_c @ (centre_b - CENTER0))):  # camera 0's centre, from 1
+        assert np.degrees(np.arccos(scores.direction[k] @ seen / np.linalg.norm(seen))) < 2.0
     loaded, loaded_roles = read_scores_csv(path)
     assert loaded_roles == roles
     for field in dataclasses.fields(PairScores):
@@ -514,6 +531,22 @@ def test_scores_kept_in_a_journal_are_not_made_again_and_equal_new_ones(tmp_path
     calls.clear()
     score(key="inputs-2")  # the journal of other features is cleared
     assert len(calls) == 4 and len(list((tmp_path / "journal").glob("*.json"))) == 4
+
+
+def test_a_journal_written_before_the_direction_reads_it_as_unknown(tmp_path):
+    """A run stopped by an earlier version resumes: its journal's rows (rotation, no direction) read
+    with the direction NaN, the rest as written."""
+    import json
+
+    from sara.scoring import ScoreJournal
+    from sara.scoring.journal import _settings
+
+    journal = ScoreJournal(tmp_path / "journal", "inputs").open()
+    row = ["a.png", "b.png", 50, 40, 0.2, 12.5, 0.2, True, "", 44, [0.1, 0.0, 0.0]]
+    (journal.folder / f"{_settings(ScoreConfig(), 0)}-old.json").write_text(json.dumps([row]))
+    score = journal.scored(ScoreConfig(), 0)[("a.png", "b.png")]
+    assert (score.num_inliers, score.num_inliers_all, score.rotvec) == (40, 44, (0.1, 0.0, 0.0))
+    assert np.all(np.isnan(score.direction))
 
 
 def test_the_journal_of_features_made_elsewhere_is_keyed_by_the_features_file(tmp_path):

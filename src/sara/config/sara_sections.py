@@ -43,9 +43,11 @@ class ScoreConfig:
         M keypoints that fit the RANSAC pose, which does not saturate at b and makes trees of the nearest
         views. "auto": "all" where the images' field of view is known to be wide (EXIF,
         extract.camera_params or a sound estimate from the images; at least
-        sara.pairs.sara.field_of_view.WIDE_FIELD_OF_VIEW_DEG), else "best": "all" gains on wide lenses and loses
-        0.16-0.40 AUC@1 on long-lens crops. Loops, anchors and weak-view pairs always rank by the paper's
-        w.""")
+        sara.pairs.sara.field_of_view.WIDE_FIELD_OF_VIEW_DEG) and the views do not move along their optical
+        axes (a drive, as the scorer's relative poses show: sara.pairs.sara.field_of_view.FORWARD_AXIAL_COSINE),
+        else "best": "all" gains on wide lenses and loses 0.16-0.40 AUC@1 on long-lens crops; moving
+        straight ahead its nearest views are the shortest steps. Loops, anchors and weak-view pairs always
+        rank by the paper's w.""")
 
     def __post_init__(self) -> None:
         validate(self)

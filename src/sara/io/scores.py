@@ -1,9 +1,10 @@
 """`scores.csv`: one row per scored candidate pair, every component of its score and its role.
 
 Columns: name0, name1, num_matches, num_inliers, num_inliers_all, overlap, parallax_deg, weight,
-accepted, reason, role, rotvec_x, rotvec_y, rotvec_z. Floats are written with full precision (repr),
-so a file read back gives the same arrays. Files written before num_inliers_all existed are read with
-it equal to num_inliers; files written before the rotation columns, with NaN rotations.
+accepted, reason, role, rotvec_x, rotvec_y, rotvec_z, direction_x, direction_y, direction_z. Floats are
+written with full precision (repr), so a file read back gives the same arrays. Files written before
+num_inliers_all existed are read with it equal to num_inliers; files written before the rotation or
+direction columns, with NaN rotations or directions.
 """
 
 from __future__ import annotations
@@ -38,6 +39,8 @@ class PairScores:
         rotvec: (P, 3) float64 the scorer's relative rotation ``cam1_from_cam0`` of each pair as a
             rotation vector (axis times angle, radians); NaN where RANSAC found no pose or it was not
             recorded (files of earlier versions).
+        direction: (P, 3) float64 the same pose's translation as a unit vector (camera 0's centre seen
+            from camera 1); NaN where there is none or it was not recorded.
     """
 
     name0: list[str]
@@ -51,6 +54,7 @@ class PairScores:
     reason: list[str]
     num_inliers_all: np.ndarray | None = None
     rotvec: np.ndarray | None = None
+    direction: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         if self.num_inliers_all is None:
@@ -58,6 +62,9 @@ class PairScores:
         if self.rotvec is None:
             self.rotvec = np.full((len(self.name0), 3), np.nan)
         self.rotvec = np.asarray(self.rotvec, dtype=np.float64).reshape(len(self.name0), 3)
+        if self.direction is None:
+            self.direction = np.full((len(self.name0), 3), np.nan)
+        self.direction = np.asarray(self.direction, dtype=np.float64).reshape(len(self.name0), 3)
 
     def __len__(self) -> int:
         return len(self.name0)
@@ -74,20 +81,23 @@ class PairScores:
             weight=column("weight", np.float64), accepted=column("accepted", bool),
             reason=[s.reason for s in scores], num_inliers_all=column("num_inliers_all", np.int64),
             rotvec=np.array([s.rotvec for s in scores], dtype=np.float64).reshape(len(scores), 3),
+            direction=np.array([getattr(s, "direction", (np.nan,) * 3) for s in scores],
+                               dtype=np.float64).reshape(len(scores), 3),
         )
 
 
 CSV_COLUMNS = (
     "name0", "name1", "num_matches", "num_inliers", "num_inliers_all", "overlap", "parallax_deg", "weight",
-    "accepted", "reason", "role", "rotvec_x", "rotvec_y", "rotvec_z",
+    "accepted", "reason", "role", "rotvec_x", "rotvec_y", "rotvec_z", "direction_x", "direction_y", "direction_z",
 )
 ROTVEC_COLUMNS = ("rotvec_x", "rotvec_y", "rotvec_z")
+DIRECTION_COLUMNS = ("direction_x", "direction_y", "direction_z")
 #: columns a scores file may lack (written by an earlier version)
-OPTIONAL_COLUMNS = ("num_inliers_all", *ROTVEC_COLUMNS)
+OPTIONAL_COLUMNS = ("num_inliers_all", *ROTVEC_COLUMNS, *DIRECTION_COLUMNS)
 
 
 _ARRAY_FIELDS = ("num_matches", "num_inliers", "num_inliers_all", "overlap", "parallax_deg", "weight", "accepted",
-                 "rotvec")
+                 "rotvec", "direction")
 
 
 def concat_scores(first: PairScores, second: PairScores) -> PairScores:
@@ -128,6 +138,7 @@ def write_scores_csv(path: Path, scores: PairScores, roles: Sequence[str] | None
                     repr(float(scores.weight[k])), "true" if scores.accepted[k] else "false",
                     scores.reason[k], roles[k] if roles is not None else "",
                     *(repr(float(v)) for v in scores.rotvec[k]),
+                    *(repr(float(v)) for v in scores.direction[k]),
                 ])
     return path
 
@@ -177,6 +188,8 @@ def read_scores_csv(path: Path) -> tuple[PairScores, list[str] | None]:
         reason=[r["reason"] for r in rows],
         rotvec=(np.stack([column(c, float, np.float64) for c in ROTVEC_COLUMNS], axis=1)
                 if all(c in fields for c in ROTVEC_COLUMNS) else None),
+        direction=(np.stack([column(c, float, np.float64) for c in DIRECTION_COLUMNS], axis=1)
+                   if all(c in fields for c in DIRECTION_COLUMNS) else None),
     )
     roles = [r["role"] for r in rows]
     return scores, (roles if any(roles) else None)

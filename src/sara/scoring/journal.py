@@ -56,7 +56,7 @@ class ScoreJournal:
         for path in sorted(self.folder.glob(f"{_settings(conf, seed)}-*.json")):
             try:
                 rows = json.loads(path.read_text(encoding="utf-8"))
-                found.update({(a, b): PairScore(*fields[:-1], rotvec=tuple(fields[-1])) for a, b, *fields in rows})
+                found.update({(a, b): _score(fields) for a, b, *fields in rows})
             except (OSError, ValueError, TypeError):
                 logger.debug("score journal: %s does not read, its pairs are scored again", path)
         return found
@@ -65,7 +65,8 @@ class ScoreJournal:
         """Keep the scores of `pairs` (one shard), written whole or not at all."""
         rows = [[a, b, int(s.num_matches), int(s.num_inliers), float(s.overlap), float(s.parallax_deg),
                  float(s.weight), bool(s.accepted), str(s.reason), int(s.num_inliers_all),
-                 [float(x) for x in s.rotvec]] for (a, b), s in zip(pairs, scores, strict=True)]
+                 [float(x) for x in s.rotvec], [float(x) for x in s.direction]]
+                for (a, b), s in zip(pairs, scores, strict=True)]
         path = self.folder / f"{_settings(conf, seed)}-{uuid.uuid4().hex}.json"
         partial = path.with_suffix(".part")
         partial.write_text(json.dumps(rows), encoding="utf-8")
@@ -73,6 +74,14 @@ class ScoreJournal:
 
     def remove(self) -> None:
         shutil.rmtree(self.folder, ignore_errors=True)
+
+
+def _score(fields: list) -> PairScore:
+    """A journal row's score (after the names): the plain fields, then the rotation and (since
+    later) the direction as lists; a row written before the direction reads it as unknown (NaN)."""
+    vectors = [tuple(f) for f in fields if isinstance(f, list)]
+    plain = [f for f in fields if not isinstance(f, list)]
+    return PairScore(*plain, rotvec=vectors[0], **({"direction": vectors[1]} if len(vectors) > 1 else {}))
 
 
 def _settings(conf: ScoreConfig, seed: int) -> str:

@@ -118,6 +118,7 @@ class PairScore:
     reason: str  # one of REASONS, "" when accepted
     num_inliers_all: int = 0  # mutual nearest neighbours of all M keypoints that fit the pose
     rotvec: tuple[float, float, float] = (math.nan, math.nan, math.nan)  # cam1_from_cam0, radians
+    direction: tuple[float, float, float] = (math.nan, math.nan, math.nan)  # unit t of cam1_from_cam0
 
 
 def pair_weight(overlap: float, parallax_deg: float, conf: ScoreConfig) -> float:
@@ -165,7 +166,8 @@ def score_pair(view0: ViewFeatures, view1: ViewFeatures, conf: ScoreConfig, *, s
     ``num_inliers``; 0 without a pose); ``parallax_deg`` is :func:`inlier_parallax_deg`;
     ``overlap`` is ``num_inliers / sqrt(N0 * N1)`` with N the keypoints used (at most M per image);
     ``rotvec`` the RANSAC pose's rotation (NaN without a pose): cycles of them test the pairs'
-    consistency (`sara.selection.ambiguity`).
+    consistency (`sara.selection.ambiguity`); ``direction`` its translation as a unit vector, camera
+    0's centre seen from camera 1 (along the optical axis when the camera moves straight ahead).
     A pair that fails a test before the parallax one (no model, too few inliers, too little
     overlap) is not triangulated: nothing uses its parallax, which is NaN ("not measured"), and its
     weight is 0. On low-texture scenes most candidates fail so, and the parallax test was 40% of
@@ -200,6 +202,7 @@ def score_pair(view0: ViewFeatures, view1: ViewFeatures, conf: ScoreConfig, *, s
         num_matches=len(matches), num_inliers=num_inliers, overlap=overlap, parallax_deg=parallax_deg,
         weight=weight, accepted=reason == "", reason=reason, num_inliers_all=num_inliers_all,
         rotvec=_rotation_vector(None if pose is None else pose.R),
+        direction=_unit_direction(None if pose is None else pose.t),
     )
 
 
@@ -208,6 +211,15 @@ def _unit(view: ViewFeatures) -> np.ndarray:
     if view.descriptors.ndim != 2:
         raise ValueError(f"descriptors must be (N, D), got shape {view.descriptors.shape}")
     return view.descriptors if view.unit else l2_normalize(view.descriptors, axis=1)
+
+
+def _unit_direction(t: np.ndarray | None) -> tuple[float, float, float]:
+    """A relative pose's translation (arbitrary scale) as a unit vector; NaN without one."""
+    norm = 0.0 if t is None else float(np.linalg.norm(t))
+    if t is None or not norm > 0.0:
+        return (math.nan, math.nan, math.nan)
+    x, y, z = (float(v) / norm for v in t)
+    return (x, y, z)
 
 
 def _rotation_vector(R: np.ndarray | None) -> tuple[float, float, float]:

@@ -23,10 +23,11 @@ from ...config import SequenceConfig
 from ...descriptors import top_k_cosine
 from ...io.pairs import Pair
 from ...io.scores import PairScores, concat_scores, take_scores, write_scores_csv
+from ...rotations import matrix_from_rotvec
 from .. import PairContext, PairResult
 from . import sequence
 from .budget import PairBudget
-from .field_of_view import resolve_tree_overlap
+from .field_of_view import axial_motion, resolve_tree_overlap
 
 logger = logging.getLogger(__name__)
 
@@ -51,7 +52,8 @@ def select(ctx: PairContext, cached: PairScores | None = None) -> PairResult:
     timings["scoring"] = time.perf_counter() - tic
 
     tic = time.perf_counter()
-    tree_overlap, field_of_view = resolve_tree_overlap(ctx)
+    axial = axial_motion(scores)
+    tree_overlap, field_of_view = resolve_tree_overlap(ctx, axial)
     conf = replace(conf, score=replace(conf.score, tree_overlap=tree_overlap))
     roles, chosen_graph, rescued = _choose(len(names), edges, scores, conf)
     timings["graph"] = time.perf_counter() - tic
@@ -98,6 +100,7 @@ def select(ctx: PairContext, cached: PairScores | None = None) -> PairResult:
         "tree_overlap": tree_overlap,
         "tree_overlap_setting": ctx.conf.score.tree_overlap,
         "field_of_view_deg": field_of_view,
+        "axial_motion": axial,
         "graph": chosen_graph.stats(),
         "selected_components": _component_sizes(labels),
         "sequence": sequences.summary(conf.sequence.mode, num_window),
@@ -167,7 +170,7 @@ def _score(ctx: PairContext, candidates: list[Pair], score_conf: Any = None, *,
 def _score_or_reuse(ctx: PairContext, candidates: list[Pair],
                     cached: PairScores | None) -> tuple[PairScores, int]:
     """The scores of `candidates` in their order, those of `cached` reused (a pair found there the
-    other way round gets its inverse rotation), the others scored; and how many were scored."""
+    other way round gets its inverse pose), the others scored; and how many were scored."""
     if cached is None:
         return _score(ctx, candidates), len(candidates)
     row = {(a, b): k for k, (a, b) in enumerate(zip(cached.name0, cached.name1))}
@@ -180,6 +183,7 @@ def _score_or_reuse(ctx: PairContext, candidates: list[Pair],
     for k, (a, b) in enumerate(candidates):
         if scores.name0[k] != a:  # stored as (b, a)
             scores.name0[k], scores.name1[k] = a, b
+            scores.direction[k] = -matrix_from_rotvec(scores.rotvec[k]).T @ scores.direction[k]
             scores.rotvec[k] = -scores.rotvec[k]
     return scores, len(todo)
 
