@@ -81,8 +81,7 @@ class PairScores:
             weight=column("weight", np.float64), accepted=column("accepted", bool),
             reason=[s.reason for s in scores], num_inliers_all=column("num_inliers_all", np.int64),
             rotvec=np.array([s.rotvec for s in scores], dtype=np.float64).reshape(len(scores), 3),
-            direction=np.array([getattr(s, "direction", (np.nan,) * 3) for s in scores],
-                               dtype=np.float64).reshape(len(scores), 3),
+            direction=np.array([s.direction for s in scores], dtype=np.float64).reshape(len(scores), 3),
         )
 
 
