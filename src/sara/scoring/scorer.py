@@ -52,7 +52,7 @@ from ..execute import Executor, SerialExecutor
 from ..io.h5 import FeatureCache, Features
 from ..io.scores import PairScores
 from ..rotations import rotvec_from_matrix
-from .twoview import estimate_relative_pose, inlier_parallax_deg, sampson_errors
+from .twoview import RelativePose, estimate_relative_pose, inlier_parallax_deg, sampson_errors
 
 if TYPE_CHECKING:
     from .journal import ScoreJournal
@@ -201,8 +201,7 @@ def score_pair(view0: ViewFeatures, view1: ViewFeatures, conf: ScoreConfig, *, s
     return PairScore(
         num_matches=len(matches), num_inliers=num_inliers, overlap=overlap, parallax_deg=parallax_deg,
         weight=weight, accepted=reason == "", reason=reason, num_inliers_all=num_inliers_all,
-        rotvec=_rotation_vector(None if pose is None else pose.R),
-        direction=_unit_direction(None if pose is None else pose.t),
+        **_pose_vectors(pose),
     )
 
 
@@ -213,21 +212,14 @@ def _unit(view: ViewFeatures) -> np.ndarray:
     return view.descriptors if view.unit else l2_normalize(view.descriptors, axis=1)
 
 
-def _unit_direction(t: np.ndarray | None) -> tuple[float, float, float]:
-    """A relative pose's translation (arbitrary scale) as a unit vector; NaN without one."""
-    norm = 0.0 if t is None else float(np.linalg.norm(t))
-    if t is None or not norm > 0.0:
-        return (math.nan, math.nan, math.nan)
-    x, y, z = (float(v) / norm for v in t)
-    return (x, y, z)
-
-
-def _rotation_vector(R: np.ndarray | None) -> tuple[float, float, float]:
-    """(3, 3) rotation -> axis times angle (radians); NaN without a rotation."""
-    if R is None:
-        return (math.nan, math.nan, math.nan)
-    x, y, z = rotvec_from_matrix(R)
-    return (float(x), float(y), float(z))
+def _pose_vectors(pose: RelativePose | None) -> dict[str, tuple[float, ...]]:
+    """A relative pose's rotation (axis times angle, radians) and translation as a unit vector
+    (`PairScore.rotvec`, `.direction`); NaN without a pose."""
+    if pose is None:
+        return {"rotvec": (math.nan,) * 3, "direction": (math.nan,) * 3}
+    t = np.asarray(pose.t, dtype=np.float64)
+    return {"rotvec": tuple(float(v) for v in rotvec_from_matrix(pose.R)),
+            "direction": tuple(float(v) for v in t / max(float(np.linalg.norm(t)), 1e-300))}
 
 
 # ----------------------------------------------------------------------------------------
