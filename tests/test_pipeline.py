@@ -9,7 +9,7 @@ import pytest
 from harness import scene_dir
 from sara.config import make_config
 from sara.io import read_json
-from sara.pipeline import run, share_features
+from sara.pipeline import record, run, share_features
 
 
 def test_synthetic_end_to_end(tmp_path: Path, five_view_scene):
@@ -124,7 +124,11 @@ def test_weakly_matched_views_get_pairs_before_the_first_mapping(tmp_path: Path,
     # the report says how the spanning tree was ranked, and why
     tree = "the inliers among all matches" if pairs["tree_overlap"] == "all" else "the paper's weight"
     assert f"spanning tree by {tree} (" in (out / "report.md").read_text()
-    assert pairs["axial_motion"] < 0.9 and "moving along their optical axes" not in (out / "report.md").read_text()
+    assert pairs["axial_motion"] < 0.9 and not pairs["moving_ahead"]
+    assert "moving along their optical axes" not in (out / "report.md").read_text()
+    ahead = record._tree_note({**pairs, "tree_overlap": "best", "field_of_view_deg": 82.0, "moving_ahead": True})
+    assert ahead == ("; spanning tree by the paper's weight (82-degree field of view, views moving along their "
+                     "optical axes)")
     assert report.metrics["num_registered"] == 10
     caplog.clear()
     again = run(conf, images, out, gt_dir=gt, progress=False)

@@ -11,7 +11,6 @@ from typing import Any
 from .. import __version__, colmap, mapping, match
 from ..eta import format_duration
 from ..io import records, write_json_atomic
-from ..pairs.sara.field_of_view import FORWARD_AXIAL_COSINE
 from ..tables import markdown_table
 from . import advice, rounds
 from .pairs_stage import STAGE as PAIRS_STAGE
@@ -99,8 +98,7 @@ def _tree_note(pairs_info: dict[str, Any]) -> str:
     view = f"{fov:.0f}-degree field of view" if fov is not None else "field of view unknown"
     rank = "the inliers among all matches" if tree == "all" else "the paper's weight"
     how = "" if pairs_info.get("tree_overlap_setting", "auto") == "auto" else ", as set by score.tree_overlap"
-    axial = pairs_info.get("axial_motion")
-    if axial is not None and axial >= FORWARD_AXIAL_COSINE:
+    if pairs_info.get("moving_ahead"):
         view += ", views moving along their optical axes"
     return f"; spanning tree by {rank} ({view}{how})"
 

@@ -54,8 +54,12 @@ def resolve_tree_overlap(ctx: PairContext, axial: float | None = None) -> tuple[
     if mode != "auto":
         return mode, fov
     wide = fov is not None and fov >= WIDE_FIELD_OF_VIEW_DEG
-    forward = axial is not None and axial >= FORWARD_AXIAL_COSINE
-    return ("all" if wide and not forward else "best"), fov
+    return ("all" if wide and not moving_ahead(axial) else "best"), fov
+
+
+def moving_ahead(axial: float | None) -> bool:
+    """Whether `axial_motion`'s figure says the views move along their optical axes."""
+    return axial is not None and axial >= FORWARD_AXIAL_COSINE
 
 
 def axial_motion(scores: PairScores) -> float | None:

@@ -27,7 +27,7 @@ from ...rotations import matrix_from_rotvec
 from .. import PairContext, PairResult
 from . import sequence
 from .budget import PairBudget
-from .field_of_view import axial_motion, resolve_tree_overlap
+from .field_of_view import axial_motion, moving_ahead, resolve_tree_overlap
 
 logger = logging.getLogger(__name__)
 
@@ -101,6 +101,7 @@ def select(ctx: PairContext, cached: PairScores | None = None) -> PairResult:
         "tree_overlap_setting": ctx.conf.score.tree_overlap,
         "field_of_view_deg": field_of_view,
         "axial_motion": axial,
+        "moving_ahead": moving_ahead(axial),
         "graph": chosen_graph.stats(),
         "selected_components": _component_sizes(labels),
         "sequence": sequences.summary(conf.sequence.mode, num_window),
