@@ -126,7 +126,7 @@ def test_weakly_matched_views_get_pairs_before_the_first_mapping(tmp_path: Path,
     assert f"spanning tree by {tree} (" in (out / "report.md").read_text()
     assert pairs["axial_motion"] < 0.9 and not pairs["moving_ahead"]
     assert "moving along their optical axes" not in (out / "report.md").read_text()
-    ahead = record._tree_note({**pairs, "tree_overlap": "best", "field_of_view_deg": 82.0, "moving_ahead": True})
+    ahead = record.tree_note({**pairs, "tree_overlap": "best", "field_of_view_deg": 82.0, "moving_ahead": True})
     assert ahead == ("; spanning tree by the paper's weight (82-degree field of view, views moving along their "
                      "optical axes)")
     assert report.metrics["num_registered"] == 10

@@ -175,7 +175,8 @@ def test_the_report_says_when_the_lens_distortion_was_held(sara_run: Path):
 def test_the_report_keeps_the_runs_advice_and_the_two_view_points(sara_run: Path):
     """The warnings given before matching (cameras from guessed focal lengths, SIFT starved), after
     mapping (views moving straight ahead) and an update's counts are in an Advice section, absent
-    when the run gave none (report.md's advice too); a model that needed the points seen in two views says so in the
+    when the run gave none (report.md's advice too); how the spanning tree was ranked is said under
+    the pairs; a model that needed the points seen in two views says so in the
     Reconstruction section."""
     from sara.report import sections
 
@@ -190,6 +191,9 @@ def test_the_report_keeps_the_runs_advice_and_the_two_view_points(sara_run: Path
     assert "<h2>Advice</h2>" in text and "5 of the 5 cameras" in text and "2 renamed" in text
     assert "360-degree camera" in text and "move along their optical axes" in text
     assert ">points</th><td>those seen in two views only" in sections.reconstruction(data)
+    data.run["stages"]["pairs"].update(tree_overlap="best", field_of_view_deg=82.0, moving_ahead=True)
+    assert ("The spanning tree by the paper&#x27;s weight (82-degree field of view, views moving along their "
+            "optical axes).") in sections.pairs_against_exhaustive(data)
     plain = render_report(RunReport(sara_run, sara_run, data.run["config"], data.run["stages"]))
     assert "## Advice" in plain and "5 of the 5 cameras" in plain and "move along their optical axes" in plain
     assert "## Advice" not in (sara_run / "report.md").read_text()  # the run itself gave none

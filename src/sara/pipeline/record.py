@@ -89,8 +89,8 @@ def rounds_share(ledger: dict[str, Any], pairs_time_s: float) -> dict[str, Any]:
             "share_after_extraction": rounds_s / (first_s + rounds_s) if first_s + rounds_s > 0 else 0.0}
 
 
-def _tree_note(pairs_info: dict[str, Any]) -> str:
-    """How the SARA selection ranked its spanning tree, for the report ('' for other sources)."""
+def tree_note(pairs_info: dict[str, Any]) -> str:
+    """How the SARA selection ranked its spanning tree, for the reports ('' for other sources)."""
     tree = pairs_info.get("tree_overlap")
     if tree is None:
         return ""
@@ -150,7 +150,7 @@ def render_report(report: RunReport) -> str:
         [f"pairs ({pr.get('method')})", f"{pr.get('time_s', 0):.1f}",
          f"{pr.get('num_pairs', 0)} pairs ({100 * pr.get('fraction_of_exhaustive', 0):.1f}% of exhaustive)"
          + (f", {before} of them added before mapping for weakly matched views" if before else "")
-         + (f", {added} of them added after mapping" if added else "") + _tree_note(pr)],
+         + (f", {added} of them added after mapping" if added else "") + tree_note(pr)],
         [f"match ({ma.get('matcher', '')})", f"{ma.get('time_s', 0):.1f}",
          f"{ma.get('num_verified_pairs', 0)} verified pairs, "
          f"{ma.get('inlier_matches_per_pair_mean', 0):.0f} inlier matches per pair"],

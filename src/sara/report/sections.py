@@ -15,7 +15,7 @@ from .. import colmap
 from ..export import FORMATS
 from ..io.pairs import Pair
 from ..pipeline import advice as run_advice
-from ..pipeline.record import frames_summary, time_notes, update_summary
+from ..pipeline.record import frames_summary, time_notes, tree_note, update_summary
 from . import SELECTED_ROLES, RunData, Scores
 from .markup import esc, fmt, section, table
 from .svg import histogram_svg, node_positions, role_order, role_swatch, top_down_svg, view_graph_svg
@@ -124,8 +124,9 @@ def pairs_against_exhaustive(data: RunData) -> str:
     if role_rows:
         body = (f"<div class=\"side\">{body}<table class=\"small\"><tr><th>role</th><th>pairs</th></tr>"
                 f"{role_rows}</table></div>")
-    return section("Pairs against exhaustive matching", body,
-                   "Percentages are of the exhaustive n(n-1)/2 pairs.")
+    tree = tree_note(data.stages.get("pairs", {})).removeprefix("; ")
+    return section("Pairs against exhaustive matching", body, "Percentages are of the exhaustive n(n-1)/2 pairs."
+                   + (f" The {esc(tree)}." if tree else ""))
 
 
 def scores(data: RunData) -> str:
