@@ -364,3 +364,26 @@ def test_views_moving_straight_ahead_without_the_intrinsics_get_the_advice_to_gi
     assert advice.forward_guess(given, {"forward_start": True}) == ""
     exif = {"settings": {"camera_params": ""}, "cameras_guessed": [0, 1]}  # EXIF's focal length, the centre a guess
     assert advice.forward_guess(exif, {"forward_start": True}) == text
+
+
+def test_a_calibrated_drive_keeps_the_papers_weight_in_its_spanning_tree(tmp_path: Path, run_cli):
+    """kitti-seq1's first 8 frames with their calibration (an 82-degree field of view, which alone
+    would rank the tree by overlap): the scorer's poses show the views moving along their axes, so
+    the tree keeps the paper's weight, and the record says why."""
+    import shutil
+
+    from harness import scene_dir
+    from sara.io import read_json
+
+    scene = scene_dir("kitti-seq1")
+    images = tmp_path / "images"
+    images.mkdir()
+    for path in sorted((scene / "images").iterdir())[:8]:
+        shutil.copy(path, images / path.name)
+    calibration = ("-s", "extract.camera_model=PINHOLE", "-s",
+                   "extract.camera_params=707.0912,707.0912,601.8873,183.1104")
+    result = run_cli("pairs", images, tmp_path / "out", "-q", *calibration)
+    assert result.code == 0, result.err
+    pairs = read_json(tmp_path / "out" / "run.json")["stages"]["pairs"]
+    assert pairs["field_of_view_deg"] == pytest.approx(81.8, abs=0.1) and pairs["axial_motion"] > 0.99
+    assert pairs["moving_ahead"] and pairs["tree_overlap"] == "best"
