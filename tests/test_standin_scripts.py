@@ -165,3 +165,22 @@ def test_wide_lens_standin_shows_each_point_where_its_fisheye_camera_projects_it
         wide = greys(dest / "images" / name, [_pixel(made, name, xyz) for xyz in inside[:80]])
         background = float(np.median(cv2.imread(str(scene / "images" / image.name), cv2.IMREAD_GRAYSCALE)))
         assert np.mean(np.abs(wide - plain)) < 0.1 * np.mean(np.abs(plain - background)), name
+
+
+def test_video_from_frames_writes_every_frame_and_names_the_truth_as_sara_names_frames(five_view_scene, tmp_path):
+    """`video_from_frames.py SCENE DEST --stem kitti` (docs/results.md): one frame per image in name
+    order, and gt/ holds each image's pose under the name `sara.video.frame_name` gives its frame."""
+    from sara.video import frame_name
+
+    scene = five_view_scene[0].parent
+    dest = tmp_path / "video"
+    _run("video_from_frames.py", scene, dest, "--stem", "kitti")
+    names = sorted(p.name for p in (scene / "images").iterdir())
+    capture = cv2.VideoCapture(str(dest / "kitti.avi"))
+    assert int(capture.get(cv2.CAP_PROP_FRAME_COUNT)) == len(names)
+    capture.release()
+    source, made = _model(scene / "gt"), _model(dest / "gt")
+    poses = {im.name: im.cam_from_world().matrix() for im in source.images.values()}
+    for k, name in enumerate(names):
+        image = next(im for im in made.images.values() if im.name == frame_name("kitti", k, len(names)))
+        np.testing.assert_allclose(image.cam_from_world().matrix(), poses[name])

@@ -77,8 +77,8 @@ class ScoreJournal:
 
 
 def _score(fields: list) -> PairScore:
-    """A journal row's score (after the names): the plain fields, then the rotation and (since
-    later) the direction as lists; a row written before the direction reads it as unknown (NaN)."""
+    """A journal row's score (after the names): the plain fields, then the rotation and the
+    direction as lists; a row written before the direction was kept reads it as unknown (NaN)."""
     vectors = [tuple(f) for f in fields if isinstance(f, list)]
     plain = [f for f in fields if not isinstance(f, list)]
     return PairScore(*plain, rotvec=vectors[0], **({"direction": vectors[1]} if len(vectors) > 1 else {}))
