@@ -478,3 +478,70 @@ def test_the_pose_guided_round_holds_the_distortion_where_the_settings_hold_it(t
         records.mark_done(tmp_path, mapping.STAGE, "k", {"distortion_held": held})
         assert round_.distortion_refined(ctx({}))
         assert not round_.distortion_refined(ctx({"map.refine_distortion": "false"}))
+
+
+def test_the_round_holds_its_prediction_to_what_the_scorer_counted(model: Path, tmp_path: Path):
+    """Where the scorer counts a pair's matches among every keypoint of both views, a count under the
+    round's minimum points keeps the pair out however many points the model predicts (a low-texture
+    stand-in: 18 of the round's 41 pairs did not verify); a chosen pair it had not scored is scored,
+    and the choice made again; a count above the prediction changes nothing."""
+    names = read_geometry(model / "sparse" / "0").names
+    features = _features_of(pycolmap.Reconstruction(str(model / "sparse" / "0")), tmp_path / "features.h5")
+    ctx = PairContext(names=names, images_root=model / "images", features_path=features,
+                      db_path=model / "database.db", out_dir=tmp_path, conf=make_config("sift-offline", ON),
+                      progress=False)
+    chain = [(names[k], names[k + 1]) for k in range(4)]
+    sparse = model / "sparse" / "0"
+    free, info = round_.select_extra(ctx, chain, sparse)
+    assert free and "num_counted" in info
+    floor = ctx.conf.rounds.pose_guided_min_points
+    held, info = round_.select_extra(ctx, chain, sparse, round_.Counts(dict.fromkeys(free, floor - 1), set(names)))
+    assert len(held) == len(free) and not set(held) & set(free)
+    assert info["num_counted_too_few"] == len(free) and info["num_counted"] == 0
+    plenty, _ = round_.select_extra(ctx, chain, sparse, round_.Counts(dict.fromkeys(free, 10000), set(names)))
+    assert plenty == free
+    # nothing known: the chosen pairs are scored (each one once), those counted too few give way
+    asked: list = []
+
+    def count(pairs):
+        asked.extend(pairs)
+        return {p: (floor - 1 if p in free else 10_000) for p in pairs}
+
+    again, info = round_.select_extra(ctx, chain, sparse, round_.Counts({}, set(names), count))
+    assert again == held and set(free) <= set(asked) and len(asked) == len(set(asked))
+    assert info["num_counted"] == len(asked)
+    # only pairs of views scored whole are counted
+    part, _ = round_.select_extra(ctx, chain, sparse, round_.Counts({}, {names[0]}, count))
+    assert part == free
+
+
+def test_the_round_takes_the_scorers_counts_only_where_it_saw_every_keypoint(tmp_path: Path, monkeypatch):
+    """`_counts`: the scorer's counts of the pairs whose two views have no more keypoints than it
+    used (`score.num_keypoints`), its scoring for others of them, and none where no view qualifies
+    or the matcher is not a nearest-neighbour one."""
+    from types import SimpleNamespace
+
+    from sara.io.h5 import Features, write_features
+    from sara.pairs.sara import rounds as sara_rounds
+
+    with h5py.File(tmp_path / "features.h5", "w") as h5:
+        for name, num in (("a", 100), ("b", 1024), ("c", 1025)):
+            write_features(h5, name, Features(np.zeros((num, 2), np.float32), np.zeros((num, 8), np.float32),
+                                              np.ones(num, np.float32), (320, 240)))
+    header = "name0,name1,num_matches,num_inliers,num_inliers_all,overlap,parallax_deg,weight,accepted,reason,role\n"
+    (tmp_path / "scores.csv").write_text(header + "b,a,50,20,21,0.1,5,0.1,true,,tree\n"
+                                                  "a,c,50,30,64,0.1,5,0.1,true,,tree\n"
+                                                  "b,c,50,9,9,0.1,nan,0,false,few_inliers,rejected\n")
+    monkeypatch.setattr(sara_rounds, "score_pairs_of",
+                        lambda ctx, pairs: SimpleNamespace(num_inliers_all=[7] * len(pairs)))
+
+    def ctx(preset: str, names=("a", "b", "c")) -> PairContext:
+        return PairContext(names=list(names), images_root=tmp_path, features_path=tmp_path / "features.h5",
+                           db_path=tmp_path / "database.db", out_dir=tmp_path, conf=make_config(preset),
+                           progress=False)
+
+    counts = sara_rounds._counts(ctx("sift-offline"))
+    assert counts.known == {("a", "b"): 21} and counts.whole == {"a", "b"}
+    assert counts.count([("a", "b")]) == {("a", "b"): 7}
+    assert sara_rounds._counts(ctx("aliked-lightglue")) is None
+    assert sara_rounds._counts(ctx("sift-offline", names=("c",))) is None

@@ -259,7 +259,10 @@ class RoundsConfig:
         constraints, which a few well-chosen pairs per view recover.""")
     pose_guided_min_points: int = option(30, ints(1), """A pair is matched in the pose-guided round only if the
         first model predicts at least this many covisible points (points); fewer rarely pass verification
-        (15 inliers).""")
+        (15 inliers). Where the scorer used every keypoint of both views (no more than score.num_keypoints, as
+        in low-texture captures) its count of the pair's matches that fit one pose must reach it too: there
+        the model's prediction ran ahead of what matching found (two low-texture stand-ins, four namings
+        each: 11-26 of a round's 39-42 pairs verified before, 22-34 of 22-34 but one after).""")
     pose_guided_max_view_angle_deg: float = option(45.0, reals(0, 180, low_open=True), """A point counts as
         covisible only if the two views see it from directions at most this far apart (degrees): SIFT seldom
         matches across wider angles.""")

@@ -81,6 +81,14 @@ def covisibility(geom, pairs: np.ndarray, *, max_view_angle_deg: float = 45.0) -
     return Covisibility(covisible.mean(axis=1), linked, tri, observed)
 
 
+def bounded_by(cov: Covisibility, measured: np.ndarray) -> Covisibility:
+    """`cov` with each pair's covisible points at most `measured` ((K,) float64, inf where nothing
+    was measured): where the scorer counted a pair's matches among every keypoint of both views, the
+    matches are what matching will find, and a model's points two views could share are not."""
+    measured = np.asarray(measured, dtype=np.float64).reshape(len(cov.covisible))
+    return Covisibility(np.minimum(cov.covisible, measured), cov.linked, cov.tri_angle_deg, cov.observed)
+
+
 def pair_scores(cov: Covisibility, pairs: np.ndarray, rule: str, *, alpha: float = 1.0, beta: float = 0.5,
                 parallax_saturation_deg: float = 10.0) -> np.ndarray:
     """(K,) float64 how much matching each pair of `pairs` ((K, 2) view rows) is expected to add.

@@ -30,7 +30,7 @@ from .. import NoRounds, PairContext, Round
 from . import pose_guided
 from .budget import PairBudget
 from .repair import fill_pairs, left_out_views, neighbour_pairs, repair_pairs
-from .source import SCORES_NAME, is_selected, score_with_ratio_test
+from .source import SCORES_NAME, is_selected, score_pairs_of, score_with_ratio_test
 from .support import support_pairs, view_inliers
 
 logger = logging.getLogger(__name__)
@@ -267,12 +267,30 @@ def pose_guided_round(ctx: PairContext, pairs: list[Pair], model_dir: Path) -> l
     done = pose_guided.recorded_pairs(ctx.out_dir, key)
     if done is not None:
         return _still_to_match(done, pairs)
-    extra, info = pose_guided.select_extra(ctx, pairs, model_dir)
+    extra, info = pose_guided.select_extra(ctx, pairs, model_dir, counts=_counts(ctx))
     pose_guided.mark_chosen(ctx.out_dir, key, extra, info)
     if extra:
         logger.info("pose-guided round: matching %d more pairs (predicted covisible points, median %.0f)",
                     len(extra), info.get("predicted_covisible_median", 0.0))
     return extra
+
+
+def _counts(ctx: PairContext) -> pose_guided.Counts | None:
+    """The scorer's counts for the pose-guided round (`pose_guided.Counts`): those of `scores.csv`
+    between views it scored whole (`_fully_scored`), and its scoring for others of them; None where
+    no view was scored whole."""
+    scores, _ = read_scores_csv(ctx.out_dir / SCORES_NAME)
+    whole = _fully_scored(ctx, set(ctx.names))
+    if not whole or scores.num_inliers_all is None:
+        return None
+    known = {tuple(sorted((a, b))): int(n) for a, b, n in zip(scores.name0, scores.name1, scores.num_inliers_all)
+             if a in whole and b in whole}
+
+    def count(pairs: list[Pair]) -> dict[Pair, int]:
+        found = score_pairs_of(ctx, pairs)
+        return {tuple(sorted(p)): int(n) for p, n in zip(pairs, found.num_inliers_all)}
+
+    return pose_guided.Counts(known, whole, count)
 
 
 def _first_round(scores_csv: Path) -> list[Pair]:

@@ -158,6 +158,11 @@ def score_with_ratio_test(ctx: PairContext, candidates: list[Pair], *, progress:
     return _score(ctx, candidates, replace(ctx.conf.score, max_descriptor_ratio=ratio), progress=progress)
 
 
+def score_pairs_of(ctx: PairContext, candidates: list[Pair]) -> scoring.PairScores:
+    """`candidates` scored as the selection scores them, quietly."""
+    return _score(ctx, candidates, progress=False)
+
+
 def _score(ctx: PairContext, candidates: list[Pair], score_conf: Any = None, *,
            progress: bool | None = None) -> scoring.PairScores:
     conf = ctx.conf
