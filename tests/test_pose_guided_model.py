@@ -545,3 +545,40 @@ def test_the_round_takes_the_scorers_counts_only_where_it_saw_every_keypoint(tmp
     assert counts.count([("a", "b")]) == {("a", "b"): 7}
     assert sara_rounds._counts(ctx("aliked-lightglue")) is None
     assert sara_rounds._counts(ctx("sift-offline", names=("c",))) is None
+
+
+def test_the_round_is_given_the_scorers_counts(model: Path, tmp_path: Path, monkeypatch):
+    """`pose_guided_round` hands the scorer's counts to the choice: the first round's counts from
+    `scores.csv`, and the scorer for the chosen pairs it had not scored (these views have a few hundred
+    keypoints each, so the scorer used them all)."""
+    from types import SimpleNamespace
+
+    from sara.pairs.sara import rounds as sara_rounds
+
+    names = read_geometry(model / "sparse" / "0").names
+    features = _features_of(pycolmap.Reconstruction(str(model / "sparse" / "0")), tmp_path / "features.h5")
+    chain = [(names[k], names[k + 1]) for k in range(4)]
+    header = "name0,name1,num_matches,num_inliers,num_inliers_all,overlap,parallax_deg,weight,accepted,reason,role\n"
+    rows = "".join(f"{a},{b},50,50,100,0.1,5,0.1,true,,tree\n" for a, b in chain)
+    (tmp_path / "scores.csv").write_text(header + rows)
+    ctx = PairContext(names=names, images_root=model / "images", features_path=features,
+                      db_path=model / "database.db", out_dir=tmp_path, conf=make_config("sift-offline", ON),
+                      progress=False)
+    floor = ctx.conf.rounds.pose_guided_min_points
+    scored: list = []
+
+    def score_pairs_of(ctx, pairs):
+        scored.extend(pairs)
+        return SimpleNamespace(num_inliers_all=[floor - 1] * len(pairs))
+
+    monkeypatch.setattr(sara_rounds, "score_pairs_of", score_pairs_of)
+    extra = sara_rounds.pose_guided_round(ctx, chain, model / "sparse" / "0")
+    # every pair the round could take was counted under its minimum: none is matched
+    assert scored and extra == []
+    info = sara_rounds.records.read_record(tmp_path, round_.STAGE)["info"]
+    assert info["num_counted"] == len(scored) and info["num_chosen"] == 0
+    # the passes run out: the pairs counted last are still left out, those never counted taken
+    monkeypatch.setattr(round_, "COUNT_PASSES", 1)
+    scored.clear()
+    again, _ = round_.select_extra(ctx, chain, model / "sparse" / "0", sara_rounds._counts(ctx))
+    assert scored and again and not set(again) & set(scored)

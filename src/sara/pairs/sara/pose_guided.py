@@ -103,7 +103,8 @@ class Counts:
         return [p for p in pairs if p not in self.known and self.whole.issuperset(p)]
 
 
-#: rounds of counting the chosen pairs the scorer had not scored, choosing again after each
+#: rounds of counting the chosen pairs the scorer had not scored, choosing again after each (pairs still
+#: not scored after the last are taken by the model's prediction)
 COUNT_PASSES = 4
 
 
@@ -130,7 +131,7 @@ def select_extra(ctx: PairContext, pairs: list[Pair], model_dir: Path, counts: C
     named = [tuple(sorted((geom.names[a], geom.names[b]))) for a, b in candidates]
     score = ctx.conf.score
     counted = 0
-    for _ in range(COUNT_PASSES):
+    for passes in range(COUNT_PASSES + 1):  # the last choice is made with every count taken
         cov = predicted if counts is None else pose_guided.bounded_by(
             predicted, np.array([counts.known.get(p, np.inf) for p in named], dtype=np.float64))
         chosen = pose_guided.choose_pairs(candidates, cov, limit, rule="covisible" if densify else "weight",
@@ -139,7 +140,7 @@ def select_extra(ctx: PairContext, pairs: list[Pair], model_dir: Path, counts: C
                                           alpha=score.alpha, beta=score.beta,
                                           parallax_saturation_deg=score.parallax_saturation_deg)
         todo = counts.unknown([named[k] for k in chosen]) if counts is not None and counts.count else []
-        if not todo:
+        if not todo or passes == COUNT_PASSES:
             break
         counts.known.update(counts.count(todo))
         counted += len(todo)

@@ -269,6 +269,9 @@ def pose_guided_round(ctx: PairContext, pairs: list[Pair], model_dir: Path) -> l
         return _still_to_match(done, pairs)
     extra, info = pose_guided.select_extra(ctx, pairs, model_dir, counts=_counts(ctx))
     pose_guided.mark_chosen(ctx.out_dir, key, extra, info)
+    if info.get("num_counted_too_few"):
+        logger.info("pose-guided round: %d pairs the model predicts enough points for are left out: the scorer, "
+                    "which saw every keypoint of both views, counted fewer matches", info["num_counted_too_few"])
     if extra:
         logger.info("pose-guided round: matching %d more pairs (predicted covisible points, median %.0f)",
                     len(extra), info.get("predicted_covisible_median", 0.0))
