@@ -282,9 +282,11 @@ def _counts(ctx: PairContext) -> pose_guided.Counts | None:
     """The scorer's counts for the pose-guided round (`pose_guided.Counts`): those of `scores.csv`
     between views it scored whole (`_fully_scored`), and its scoring for others of them; None where
     no view was scored whole."""
-    scores, _ = read_scores_csv(ctx.out_dir / SCORES_NAME)
     whole = _fully_scored(ctx, set(ctx.names))
-    if not whole or scores.num_inliers_all is None:
+    if not whole:  # the ordinary case: no second reading of scores.csv
+        return None
+    scores, _ = read_scores_csv(ctx.out_dir / SCORES_NAME)
+    if scores.num_inliers_all is None:
         return None
     known = {tuple(sorted((a, b))): int(n) for a, b, n in zip(scores.name0, scores.name1, scores.num_inliers_all)
              if a in whole and b in whole}
