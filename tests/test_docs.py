@@ -5,7 +5,9 @@ any file of the repository."""
 from __future__ import annotations
 
 import re
+import shlex
 import subprocess
+import tomllib
 from pathlib import Path
 
 import pytest
@@ -79,6 +81,17 @@ def test_readme_is_short_and_starts_with_install_and_tests() -> None:
     assert len(blocks) >= 2
     assert blocks[0].strip() == INSTALL
     assert blocks[1].strip() == TEST_COMMAND
+
+
+def test_the_test_command_uses_every_core_and_keeps_each_file_on_one_worker() -> None:
+    """The README's test command takes its options from pyproject.toml: the suite on every core
+    (pytest-xdist, in the test extra) and each file's tests on one worker, which the Ray tests'
+    shared cluster needs (a second cluster started beside it stops the first)."""
+    pyproject = tomllib.loads((ROOT / "pyproject.toml").read_text(encoding="utf-8"))
+    options = shlex.split(pyproject["tool"]["pytest"]["ini_options"]["addopts"])
+    assert options[options.index("-n") + 1] == "auto"
+    assert options[options.index("--dist") + 1] == "loadfile"
+    assert any(spec.startswith("pytest-xdist") for spec in pyproject["project"]["optional-dependencies"]["test"])
 
 
 def test_docs_holds_the_user_documents() -> None:

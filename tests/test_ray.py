@@ -9,25 +9,33 @@ import os
 import shutil
 import subprocess
 import sys
+import tempfile
 from pathlib import Path
 
 import pytest
 
 pytest.importorskip("ray")
+# One Ray cluster at a time on this machine: `ray stop --force` stops every node on it, and a driver
+# whose cluster is stopped under it exits. pytest-xdist keeps this file's tests on one worker
+# (`--dist loadfile` in pyproject.toml).
 
 from sara.cli import main  # noqa: E402
 
 
 @pytest.fixture(scope="module")
-def ray_cluster(tmp_path_factory):
-    """A head node and a worker node on localhost, one CPU each; yields the head's address."""
+def ray_cluster():
+    """A head node and a worker node on localhost, one CPU each; yields the head's address. Ray's
+    session folder is a short one under the system's temporary folder: its sockets' paths must stay
+    under 108 bytes, which pytest's per-worker folders exceed."""
     from sara.execute_ray import local_cluster
 
     stack = contextlib.ExitStack()
+    temp_dir = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="ray")))
     try:
-        address = stack.enter_context(local_cluster(2, 1, tmp_path_factory.mktemp("ray")))
+        address = stack.enter_context(local_cluster(2, 1, temp_dir))
     except (subprocess.CalledProcessError, subprocess.TimeoutExpired) as exc:
-        pytest.fail(f"could not start a local Ray cluster: {exc}")
+        stack.close()
+        pytest.fail(f"could not start a local Ray cluster: {exc}; {(exc.stderr or b'')[-600:]!r}")
     with stack:
         yield address
 
