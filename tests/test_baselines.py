@@ -14,7 +14,7 @@ from sara.config import make_config
 from sara.io.h5 import Features, write_features
 from sara.pairs import PairContext, get_source
 from sara.pairs.sequential import nearest_neighbours, sequential_offsets, sequential_pairs
-from sara.pairs.vocabtree import TREE_NAME, num_tree_words, retrieval_pairs
+from sara.pairs.vocabtree import QUERIES_NAME, TREE_NAME, QueryJournal, num_tree_words, retrieval_pairs
 
 
 def names(n: int) -> list[str]:
@@ -225,3 +225,57 @@ def test_a_setting_added_later_keys_the_pairs_only_away_from_its_default():
     assert pairs_key(conf, "x", None) == fingerprint(before)
     off = make_config("sift-offline", {"rounds.repair_descriptor_ratio": 1.0})
     assert pairs_key(off, "x", None) != pairs_key(conf, "x", None)
+
+
+def test_a_stopped_vocabtree_selection_queries_only_the_images_left(five_view_scene, tmp_path, run_cli,
+                                                                    monkeypatch):
+    """Ctrl-C after two of five queries: the run again queries the three left (the index is built
+    again, the tree reused), and its pairs are an uninterrupted run's; nothing of the queries stays."""
+    from sara import colmap
+    from sara.pipeline import share_features
+
+    images, _ = five_view_scene
+    whole, out = tmp_path / "whole", tmp_path / "out"
+    args = ("--method", "vocabtree", "-q")
+    assert run_cli("pairs", images, whole, *args).code == 0
+    share_features(whole, out)
+    original, asked = colmap.vocab_tree_retrieval, []
+
+    def two_then_stop(*a, on_query, **kw):
+        answered = []
+
+        def answer(query, retrieved):
+            on_query(query, retrieved)
+            answered.append(query)
+            if len(answered) == 2:
+                raise KeyboardInterrupt
+
+        return original(*a, on_query=answer, **kw)
+
+    monkeypatch.setattr(colmap, "vocab_tree_retrieval", two_then_stop)
+    assert run_cli("pairs", images, out, *args).code == 130
+
+    def recorded(*a, queries=None, **kw):
+        asked.append(queries)
+        return original(*a, queries=queries, **kw)
+
+    monkeypatch.setattr(colmap, "vocab_tree_retrieval", recorded)
+    result = run_cli("pairs", images, out, *args)
+    assert result.code == 0, result.err
+    assert len(asked) == 1 and asked[0] is not None and len(asked[0]) == 3
+    assert (out / "pairs.txt").read_bytes() == (whole / "pairs.txt").read_bytes()
+    assert not list(out.rglob(QUERIES_NAME))
+
+
+def test_the_query_journal_reads_whole_lines_of_its_own_inputs(tmp_path):
+    path = tmp_path / QUERIES_NAME
+    journal = QueryJournal(path, "key-a")
+    journal.start({"a.jpg": ["a.jpg", "b.jpg"]})
+    journal.add("b.jpg", ["b.jpg", "a.jpg"])
+    journal.close()
+    with path.open("a", encoding="utf-8") as f:
+        f.write('["c.jpg", ["c.j')  # a stop in the middle of a line
+    assert journal.read() == {"a.jpg": ["a.jpg", "b.jpg"], "b.jpg": ["b.jpg", "a.jpg"]}
+    assert QueryJournal(path, "key-b").read() == {}  # other tree, images, features or num_images
+    path.write_bytes(b"\xff\xfe")
+    assert journal.read() == {}

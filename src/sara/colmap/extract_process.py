@@ -62,7 +62,7 @@ def run_watched(job: dict[str, Any], watch: Callable[[], None]) -> None:
         raise ColmapError(result["message"])
 
 
-def _end_with_parent(parent: int) -> None:
+def end_with_parent(parent: int) -> None:
     """End this process when its parent is gone (a SIGKILL gave it no chance to stop us): no orphan
     goes on writing into a database that the next run resumes."""
 
@@ -76,7 +76,7 @@ def _end_with_parent(parent: int) -> None:
 
 def main(argv: list[str]) -> int:
     job = json.loads(argv[0])
-    _end_with_parent(job["parent"])
+    end_with_parent(job["parent"])
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C reaches the parent too: it decides
     from . import native, sift
 

@@ -3,6 +3,7 @@ image of a database, the images most like it (the `vocabtree` baseline pair sour
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -32,18 +33,47 @@ def build_visual_index(descriptors: np.ndarray, path: Path, *, num_words: int, n
     index.write(str(path))
 
 
-def vocab_tree_retrieval(db_path: Path, tree_path: Path, num_images: int, *,
+def vocab_tree_retrieval(db_path: Path, tree_path: Path, num_images: int, *, queries: Sequence[str] | None = None,
+                         on_query: Callable[[str, list[str]], None] | None = None,
                          num_threads: int = -1) -> list[tuple[str, str]]:
-    """COLMAP's vocabulary-tree retrieval: every database image queries the index of all images.
+    """COLMAP's vocabulary-tree retrieval: database images query the index of all images.
 
     Returns (query name, retrieved name) for the `num_images` best-scoring images of each query;
-    as in COLMAP's vocab_tree_matcher, the query itself is usually among them.
+    as in COLMAP's vocab_tree_matcher, the query itself is usually among them. `queries`: the images
+    that query (None: every image; all are indexed either way). `on_query(name, retrieved)` is called
+    after each query, in turn, so that a caller can keep its results as they come.
+
+    It runs in a process of its own (`vocabtree_process`): COLMAP's generator queries ahead in
+    threads that read its index and the database, and freeing it part-way (a Ctrl-C between two
+    queries) crashes the process; a child is stopped whole.
     """
+    from .vocabtree_process import run_queries
+
+    job = {"db_path": str(db_path), "tree_path": str(tree_path), "num_images": int(num_images),
+           "num_threads": int(num_threads)}
+    retrieved: list[tuple[str, str]] = []
+
+    def answer(query: str, names: list[str]) -> None:
+        retrieved.extend((query, name) for name in names)
+        if on_query is not None:
+            on_query(query, names)
+
+    run_queries(job, queries, answer)
+    return retrieved
+
+
+def query_all(job: dict, answer: Callable[[str, list[str]], None]) -> None:
+    """The child's side: every query of the match list (or every image) in turn, each answered."""
     opts = pycolmap.VocabTreePairingOptions()
-    opts.vocab_tree_path = str(tree_path)
-    opts.num_images = int(num_images)
-    opts.num_threads = num_threads
-    with open_pycolmap_database(db_path) as db:
+    opts.vocab_tree_path = job["tree_path"]
+    opts.num_images = job["num_images"]
+    opts.num_threads = job["num_threads"]
+    if job.get("match_list_path"):
+        opts.match_list_path = job["match_list_path"]
+    with open_pycolmap_database(Path(job["db_path"])) as db:
         names = {im.image_id: im.name for im in db.read_all_images()}
-        id_pairs = pycolmap.VocabTreePairGenerator(opts, db).all_pairs()
-    return [(names[int(a)], names[int(b)]) for a, b in id_pairs]
+        generator = pycolmap.VocabTreePairGenerator(opts, db)  # indexes every image
+        while not generator.has_finished():
+            block = [(names[int(a)], names[int(b)]) for a, b in generator.next()]  # one query's images
+            if block:
+                answer(block[0][0], [b for _, b in block])

@@ -9,10 +9,14 @@ built from this collection's own SIFT descriptors and saved as `<out>/vocab_tree
 Building is kept short (a capped, seeded sample of descriptors, one clustering round of few
 iterations) and is timed apart ("build_tree") from the retrieval itself ("retrieve"), since users
 normally load a ready tree.
+
+The queries are kept as they come (`vocab_tree_queries.jsonl`, one line per query): a selection
+stopped part-way, at 10,000 images an hour in, queries only the images left when run again.
 """
 
 from __future__ import annotations
 
+import json
 import logging
 import math
 import time
@@ -32,6 +36,7 @@ logger = logging.getLogger(__name__)
 
 TREE_NAME = "vocab_tree.bin"
 TREE_RECORD_NAME = "vocab_tree.json"  # what the saved tree was built from, so a re-run reuses it
+QUERIES_NAME = "vocab_tree_queries.jsonl"  # each query's retrieved images, kept while the queries run
 MAX_TREE_DESCRIPTORS = 80_000  # descriptors sampled from the whole collection to build the tree
 MIN_DESCRIPTORS_PER_WORD = 16  # fewer visual words than asked when the sample is small
 TREE_ITERATIONS = 8  # k-means iterations of the single clustering round
@@ -98,6 +103,82 @@ def build_tree(ctx: PairContext) -> tuple[Path, dict]:
     return tree_path, {**info, "tree_reused": False}
 
 
+class QueryJournal:
+    """Each finished query's retrieved images, one JSON line per query, under the first line's key
+    (the tree, the images, the features, `num_images`): a line the stop cut short is not read."""
+
+    def __init__(self, path: Path, key: str) -> None:
+        self.path, self.key = path, key
+
+    def read(self) -> dict[str, list[str]]:
+        try:
+            lines = self.path.read_text(encoding="utf-8").split("\n")
+        except (OSError, UnicodeDecodeError):
+            return {}
+        if not lines or lines[0] != json.dumps({"key": self.key}):
+            return {}
+        done: dict[str, list[str]] = {}
+        for line in lines[1:-1]:  # the last piece follows the last newline: empty, or cut short
+            try:
+                query, retrieved = json.loads(line)
+            except ValueError:
+                continue
+            done[str(query)] = [str(name) for name in retrieved]
+        return done
+
+    def start(self, done: dict[str, list[str]]) -> None:
+        """Write the journal again with what was read (a journal of other inputs is dropped)."""
+        body = "".join(json.dumps([query, retrieved]) + "\n" for query, retrieved in done.items())
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self.path.write_text(json.dumps({"key": self.key}) + "\n" + body, encoding="utf-8")
+        self._file = self.path.open("a", encoding="utf-8")
+
+    def add(self, query: str, retrieved: list[str]) -> None:
+        self._file.write(json.dumps([query, retrieved]) + "\n")
+        self._file.flush()
+
+    def close(self) -> None:
+        if getattr(self, "_file", None) is not None:
+            self._file.close()
+            self._file = None
+
+
+def _queries_key(ctx: PairContext, tree_path: Path, tree_info: dict) -> str:
+    tree = Path(tree_path).stat()
+    features = Path(ctx.features_path).stat()
+    return fingerprint({"tree": [str(tree_path), tree.st_size, tree.st_mtime_ns], "tree_info": tree_info,
+                        "names": list(ctx.names), "features": [features.st_size, features.st_mtime_ns],
+                        "num_images": ctx.conf.vocab_tree.num_images})
+
+
+def retrieve(ctx: PairContext, tree_path: Path, tree_info: dict) -> tuple[list[tuple[str, str]], int]:
+    """Every image's `num_images` best-scoring images, the queries of a stopped selection kept;
+    returns them and how many queries were kept."""
+    journal = QueryJournal(Path(ctx.out_dir) / QUERIES_NAME, _queries_key(ctx, tree_path, tree_info))
+    known = set(ctx.names)
+    done = {query: retrieved for query, retrieved in journal.read().items() if query in known}
+    kept = len(done)
+    left = [name for name in ctx.names if name not in done]
+    if kept:
+        logger.info("vocabtree: %d of %d queries kept from a stopped selection", kept, len(ctx.names))
+    journal.start(done)
+    try:
+        if left:
+            with tqdm(total=len(ctx.names), initial=kept, desc="vocabulary-tree queries", unit="img",
+                      disable=not ctx.progress) as bar:
+                def keep(query: str, retrieved: list[str]) -> None:
+                    journal.add(query, retrieved)
+                    done[query] = retrieved
+                    bar.update()
+
+                colmap.vocab_tree_retrieval(ctx.db_path, tree_path, ctx.conf.vocab_tree.num_images,
+                                            queries=left if kept else None, on_query=keep)
+    finally:
+        journal.close()
+    journal.path.unlink(missing_ok=True)  # every query answered: pairs.txt holds them now
+    return [(query, name) for query, retrieved in done.items() for name in retrieved], kept
+
+
 def select(ctx: PairContext) -> PairResult:
     conf = ctx.conf.vocab_tree
     if conf.num_images < 1:
@@ -116,11 +197,12 @@ def select(ctx: PairContext) -> PairResult:
         timings["build_tree"] = time.perf_counter() - tic
         info.update(tree=str(tree_path), tree_built=not info["tree_reused"])
     tic = time.perf_counter()
-    retrieved = colmap.vocab_tree_retrieval(ctx.db_path, tree_path, conf.num_images)
+    retrieved, kept = retrieve(ctx, tree_path, {k: v for k, v in info.items() if k.startswith("tree_num")})
     pairs = retrieval_pairs(retrieved, ctx.names)
     timings["retrieve"] = time.perf_counter() - tic
-    info.update(num_images=conf.num_images, num_retrieved=len(retrieved))
+    info.update(num_images=conf.num_images, num_retrieved=len(retrieved), num_queries_kept=kept)
     return PairResult(pairs, info, timings)
 
 
-SOURCE = PairSource(select=select, sections=lambda conf: ("pairs", "vocab_tree"), caches=(TREE_NAME, TREE_RECORD_NAME))
+SOURCE = PairSource(select=select, sections=lambda conf: ("pairs", "vocab_tree"),
+                    caches=(TREE_NAME, TREE_RECORD_NAME, QUERIES_NAME))
