@@ -10,6 +10,7 @@ import numpy as np
 import pycolmap
 import pytest
 
+from harness import assert_error
 from sara.config import make_config
 from sara.io.h5 import Features, write_features
 from sara.pairs import PairContext, get_source
@@ -279,3 +280,12 @@ def test_the_query_journal_reads_whole_lines_of_its_own_inputs(tmp_path):
     assert QueryJournal(path, "key-b").read() == {}  # other tree, images, features or num_images
     path.write_bytes(b"\xff\xfe")
     assert journal.read() == {}
+
+
+def test_a_file_that_is_no_vocabulary_tree_is_one_line(five_view_scene, tmp_path, run_cli):
+    """The queries run in a child process: its failure comes back as COLMAP's own one line."""
+    images, _ = five_view_scene
+    bad = tmp_path / "tree.bin"
+    bad.write_bytes(bytes(range(256)) * 4)
+    result = run_cli("pairs", images, tmp_path / "out", "--method", "vocabtree", "-q", "-s", f"vocab_tree.path={bad}")
+    assert_error(result, 1, "vocabulary-tree retrieval failed", "faiss index")

@@ -70,17 +70,19 @@ def main(argv: list[str]) -> int:
     from .vocabtree import query_all
 
     native.send_log_to(Path(job["log_dir"]) if job["log_dir"] else None, verbose=job["verbose"])
+    channel = os.fdopen(os.dup(1), "w", encoding="utf-8")  # the answers' own: a native library's
+    os.dup2(2, 1)  # print to stdout goes to stderr and cannot cut into an answer
 
     def answer(query: str, retrieved: list[str]) -> None:
-        print(json.dumps([query, retrieved]), flush=True)
+        print(json.dumps([query, retrieved]), file=channel, flush=True)
 
     try:
         with native.native_errors("retrieve images with the vocabulary tree", Path(job["db_path"]).parent):
             query_all(job, answer)
     except Exception as exc:  # noqa: BLE001 - told to the parent, which raises it
-        print(json.dumps({"error": "colmap", "message": str(exc)}), flush=True)
+        print(json.dumps({"error": "colmap", "message": str(exc)}), file=channel, flush=True)
         return 1
-    print(json.dumps({"ok": True}), flush=True)
+    print(json.dumps({"ok": True}), file=channel, flush=True)
     return 0
 
 

@@ -171,8 +171,9 @@ def retrieve(ctx: PairContext, tree_path: Path, tree_info: dict) -> tuple[list[t
                     done[query] = retrieved
                     bar.update()
 
+                listable = all(name == name.strip() and "\n" not in name for name in left)  # a match list's lines
                 colmap.vocab_tree_retrieval(ctx.db_path, tree_path, ctx.conf.vocab_tree.num_images,
-                                            queries=left if kept else None, on_query=keep)
+                                            queries=left if kept and listable else None, on_query=keep)
     finally:
         journal.close()
     journal.path.unlink(missing_ok=True)  # every query answered: pairs.txt holds them now
