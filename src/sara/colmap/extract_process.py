@@ -12,6 +12,7 @@ Protocol: the job as JSON in argv; the child prints one JSON line, {"ok": true} 
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import signal
@@ -19,7 +20,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -34,22 +35,13 @@ def run_watched(job: dict[str, Any], watch: Callable[[], None]) -> None:
     from ..io import disk_full_error
     from .native import ColmapError
 
-    child = subprocess.Popen([sys.executable, "-m", __name__, json.dumps(job)], stdout=subprocess.PIPE,
-                             stdin=subprocess.DEVNULL, text=True)
-    try:
+    with child_process(__name__, job) as child:
         while child.poll() is None:
             try:
                 child.wait(WATCH_S)
             except subprocess.TimeoutExpired:
                 watch()
         answer = child.stdout.read() if child.stdout else ""
-    except BaseException:
-        child.terminate()
-        child.wait()
-        raise
-    finally:
-        if child.stdout:
-            child.stdout.close()
     lines = answer.strip().splitlines()
     result = json.loads(lines[-1]) if lines and lines[-1].startswith("{") else None
     folder = Path(job["db_path"]).parent
@@ -60,6 +52,23 @@ def run_watched(job: dict[str, Any], watch: Callable[[], None]) -> None:
         raise disk_full_error(folder)
     if "error" in result:
         raise ColmapError(result["message"])
+
+
+@contextlib.contextmanager
+def child_process(module: str, job: dict[str, Any]) -> Iterator[subprocess.Popen]:
+    """`python -m MODULE JOB` (the job as JSON), its stdout a text pipe for this side to read; the
+    child is stopped when the block raises (Ctrl-C and sara's SIGTERM included), the pipe closed."""
+    child = subprocess.Popen([sys.executable, "-m", module, json.dumps(job)], stdout=subprocess.PIPE,
+                             stdin=subprocess.DEVNULL, text=True, encoding="utf-8")
+    try:
+        yield child
+    except BaseException:
+        child.terminate()
+        child.wait()
+        raise
+    finally:
+        if child.stdout:
+            child.stdout.close()
 
 
 def end_with_parent(parent: int) -> None:

@@ -14,7 +14,6 @@ from __future__ import annotations
 import json
 import os
 import signal
-import subprocess
 import sys
 import tempfile
 from collections.abc import Callable, Sequence
@@ -27,6 +26,7 @@ def run_queries(job: dict[str, Any], queries: Sequence[str] | None,
     """Run the queries of `job` in a child, calling `answer(query, retrieved)` for each as it comes;
     when anything raises here (Ctrl-C and sara's SIGTERM included) the child is stopped and the
     error raised. `queries`: the images that query (None: every image of the database)."""
+    from .extract_process import child_process
     from .native import ColmapError, log_settings
 
     with tempfile.TemporaryDirectory(prefix="sara-queries-") as folder:
@@ -36,25 +36,15 @@ def run_queries(job: dict[str, Any], queries: Sequence[str] | None,
             match_list = Path(folder) / "queries.txt"
             match_list.write_text("".join(f"{name}\n" for name in queries), encoding="utf-8")
             job["match_list_path"] = str(match_list)
-        child = subprocess.Popen([sys.executable, "-m", __name__, json.dumps(job)], stdout=subprocess.PIPE,
-                                 stdin=subprocess.DEVNULL, text=True, encoding="utf-8")
         end: dict[str, Any] | None = None
-        try:
-            assert child.stdout is not None
-            for line in child.stdout:
+        with child_process(__name__, job) as child:
+            for line in child.stdout or ():
                 message = json.loads(line)
                 if isinstance(message, dict):
                     end = message
                     break
                 answer(message[0], message[1])
             child.wait()
-        except BaseException:
-            child.kill()
-            child.wait()
-            raise
-        finally:
-            if child.stdout:
-                child.stdout.close()
     if end is None or "error" in end:
         why = end["message"] if end else f"it ended without a word (exit code {child.returncode})"
         raise ColmapError(f"COLMAP's vocabulary-tree retrieval failed: {why}")
