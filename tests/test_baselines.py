@@ -288,4 +288,4 @@ def test_a_file_that_is_no_vocabulary_tree_is_one_line(five_view_scene, tmp_path
     bad = tmp_path / "tree.bin"
     bad.write_bytes(bytes(range(256)) * 4)
     result = run_cli("pairs", images, tmp_path / "out", "--method", "vocabtree", "-q", "-s", f"vocab_tree.path={bad}")
-    assert_error(result, 1, "vocabulary-tree retrieval failed", "faiss index")
+    assert_error(result, 1, "vocabulary-tree retrieval failed", "faiss index", f"vocab_tree.path={bad}")

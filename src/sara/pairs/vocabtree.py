@@ -198,7 +198,12 @@ def select(ctx: PairContext) -> PairResult:
         timings["build_tree"] = time.perf_counter() - tic
         info.update(tree=str(tree_path), tree_built=not info["tree_reused"])
     tic = time.perf_counter()
-    retrieved, kept = retrieve(ctx, tree_path, {k: v for k, v in info.items() if k.startswith("tree_num")})
+    try:
+        retrieved, kept = retrieve(ctx, tree_path, {k: v for k, v in info.items() if k.startswith("tree_num")})
+    except colmap.ColmapError as exc:
+        if not conf.path:
+            raise
+        raise colmap.ColmapError(f"{exc} (the tree given: vocab_tree.path={tree_path})") from exc
     pairs = retrieval_pairs(retrieved, ctx.names)
     timings["retrieve"] = time.perf_counter() - tic
     info.update(num_images=conf.num_images, num_retrieved=len(retrieved), num_queries_kept=kept)
