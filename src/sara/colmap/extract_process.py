@@ -12,20 +12,15 @@ Protocol: the job as JSON in argv; the child prints one JSON line, {"ok": true} 
 
 from __future__ import annotations
 
-import contextlib
 import json
-import os
 import signal
 import subprocess
 import sys
-import threading
-import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-#: seconds between two looks at the database (parent) and at the parent (child)
-WATCH_S = 0.5
+from .child import WATCH_S, child_process, end_with_parent
 
 
 def run_watched(job: dict[str, Any], watch: Callable[[], None]) -> None:
@@ -52,35 +47,6 @@ def run_watched(job: dict[str, Any], watch: Callable[[], None]) -> None:
         raise disk_full_error(folder)
     if "error" in result:
         raise ColmapError(result["message"])
-
-
-@contextlib.contextmanager
-def child_process(module: str, job: dict[str, Any]) -> Iterator[subprocess.Popen]:
-    """`python -m MODULE JOB` (the job as JSON), its stdout a text pipe for this side to read; the
-    child is stopped when the block raises (Ctrl-C and sara's SIGTERM included), the pipe closed."""
-    child = subprocess.Popen([sys.executable, "-m", module, json.dumps(job)], stdout=subprocess.PIPE,
-                             stdin=subprocess.DEVNULL, text=True, encoding="utf-8")
-    try:
-        yield child
-    except BaseException:
-        child.terminate()
-        child.wait()
-        raise
-    finally:
-        if child.stdout:
-            child.stdout.close()
-
-
-def end_with_parent(parent: int) -> None:
-    """End this process when its parent is gone (a SIGKILL gave it no chance to stop us): no orphan
-    goes on writing into a database that the next run resumes."""
-
-    def watch() -> None:
-        while os.getppid() == parent:
-            time.sleep(WATCH_S)
-        os._exit(1)
-
-    threading.Thread(target=watch, daemon=True, name="sara-parent-watch").start()
 
 
 def main(argv: list[str]) -> int:

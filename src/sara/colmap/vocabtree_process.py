@@ -26,7 +26,7 @@ def run_queries(job: dict[str, Any], queries: Sequence[str] | None,
     """Run the queries of `job` in a child, calling `answer(query, retrieved)` for each as it comes;
     when anything raises here (Ctrl-C and sara's SIGTERM included) the child is stopped and the
     error raised. `queries`: the images that query (None: every image of the database)."""
-    from .extract_process import child_process
+    from .child import child_process
     from .native import ColmapError, log_settings
 
     with tempfile.TemporaryDirectory(prefix="sara-queries-") as folder:
@@ -51,7 +51,7 @@ def run_queries(job: dict[str, Any], queries: Sequence[str] | None,
 
 
 def main(argv: list[str]) -> int:
-    from .extract_process import end_with_parent
+    from .child import end_with_parent
 
     job = json.loads(argv[0])
     end_with_parent(job["parent"])

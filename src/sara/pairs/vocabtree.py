@@ -22,6 +22,7 @@ import math
 import time
 from collections.abc import Sequence
 from pathlib import Path
+from typing import TextIO
 
 import numpy as np
 from tqdm import tqdm
@@ -109,6 +110,7 @@ class QueryJournal:
 
     def __init__(self, path: Path, key: str) -> None:
         self.path, self.key = path, key
+        self._file: TextIO | None = None
 
     def read(self) -> dict[str, list[str]]:
         try:
@@ -138,23 +140,23 @@ class QueryJournal:
         self._file.flush()
 
     def close(self) -> None:
-        if getattr(self, "_file", None) is not None:
+        if self._file is not None:
             self._file.close()
             self._file = None
 
 
-def _queries_key(ctx: PairContext, tree_path: Path, tree_info: dict) -> str:
+def _queries_key(ctx: PairContext, tree_path: Path) -> str:
     tree = Path(tree_path).stat()
     features = Path(ctx.features_path).stat()
-    return fingerprint({"tree": [str(tree_path), tree.st_size, tree.st_mtime_ns], "tree_info": tree_info,
+    return fingerprint({"tree": [str(tree_path), tree.st_size, tree.st_mtime_ns],
                         "names": list(ctx.names), "features": [features.st_size, features.st_mtime_ns],
                         "num_images": ctx.conf.vocab_tree.num_images})
 
 
-def retrieve(ctx: PairContext, tree_path: Path, tree_info: dict) -> tuple[list[tuple[str, str]], int]:
+def retrieve(ctx: PairContext, tree_path: Path) -> tuple[list[tuple[str, str]], int]:
     """Every image's `num_images` best-scoring images, the queries of a stopped selection kept;
     returns them and how many queries were kept."""
-    journal = QueryJournal(Path(ctx.out_dir) / QUERIES_NAME, _queries_key(ctx, tree_path, tree_info))
+    journal = QueryJournal(Path(ctx.out_dir) / QUERIES_NAME, _queries_key(ctx, tree_path))
     known = set(ctx.names)
     done = {query: retrieved for query, retrieved in journal.read().items() if query in known}
     kept = len(done)
@@ -199,7 +201,7 @@ def select(ctx: PairContext) -> PairResult:
         info.update(tree=str(tree_path), tree_built=not info["tree_reused"])
     tic = time.perf_counter()
     try:
-        retrieved, kept = retrieve(ctx, tree_path, {k: v for k, v in info.items() if k.startswith("tree_num")})
+        retrieved, kept = retrieve(ctx, tree_path)
     except colmap.ColmapError as exc:
         if not conf.path:
             raise
