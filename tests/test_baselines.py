@@ -282,10 +282,11 @@ def test_the_query_journal_reads_whole_lines_of_its_own_inputs(tmp_path):
     assert journal.read() == {}
 
 
-def test_a_file_that_is_no_vocabulary_tree_is_one_line(five_view_scene, tmp_path, run_cli):
-    """The queries run in a child process: its failure comes back as COLMAP's own one line."""
+def test_a_file_that_is_no_vocabulary_tree_is_a_bad_input_in_one_line(five_view_scene, tmp_path, run_cli):
+    """The queries run in a child process; a tree file COLMAP cannot read is the user's input (exit 2),
+    named with the setting that gave it, COLMAP's own reason beside it."""
     images, _ = five_view_scene
     bad = tmp_path / "tree.bin"
     bad.write_bytes(bytes(range(256)) * 4)
-    result = run_cli("pairs", images, tmp_path / "out", "--method", "vocabtree", "-q", "-s", f"vocab_tree.path={bad}")
-    assert_error(result, 1, "vocabulary-tree retrieval failed", "faiss index", f"vocab_tree.path={bad}")
+    result = run_cli("pairs", images, tmp_path / "out", "--pairs", "vocabtree", "-q", "-s", f"vocab_tree.path={bad}")
+    assert_error(result, 2, f"not a vocabulary tree COLMAP can read: {bad}", "faiss index", "vocab_tree.path")

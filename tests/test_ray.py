@@ -1,5 +1,5 @@
-"""The Ray executor on a real two-node Ray cluster on this machine (`ray start --head` plus a second
-node joined to it, both stopped at the end): the same pairs as a serial run, and a worker that dies
+"""The Ray executor on a real two-node Ray cluster on this machine (a head plus a second node joined
+to it, both stopped at the end, and no other Ray node): the same pairs as a serial run, and a worker that dies
 mid-run is replaced (its task runs again) and the run completes."""
 
 from __future__ import annotations
@@ -15,9 +15,8 @@ from pathlib import Path
 import pytest
 
 pytest.importorskip("ray")
-# One Ray cluster at a time on this machine: `ray stop --force` stops every node on it, and a driver
-# whose cluster is stopped under it exits. pytest-xdist keeps this file's tests on one worker
-# (`--dist loadfile` in pyproject.toml).
+# pytest-xdist keeps this file's tests on one worker (`--dist loadfile` in pyproject.toml): they share
+# one cluster (the module's fixture) instead of each worker starting its own.
 
 from sara.cli import main  # noqa: E402
 
@@ -59,6 +58,20 @@ def test_ray_cluster_gives_the_serial_pairs(ray_cluster, synthetic_scene, scene_
     assert (clustered / "pairs.txt").read_bytes() == (serial / "pairs.txt").read_bytes()
     assert (clustered / "scores.csv").read_bytes() == (serial / "scores.csv").read_bytes()
     assert (clustered / "sparse" / "0").is_dir()
+
+
+def test_a_local_cluster_stops_its_own_nodes_only(ray_cluster) -> None:
+    """Leaving `local_cluster` ends the nodes it started; the cluster of the fixture (another user's
+    on a shared machine) still runs a task. `ray stop --force`, used before, stopped both."""
+    from sara.execute_ray import local_cluster
+
+    with tempfile.TemporaryDirectory(prefix="ray") as temp_dir, local_cluster(1, 1, Path(temp_dir)) as other:
+        assert other != ray_cluster
+    probe = (f"import ray; ray.init(address={ray_cluster!r}, logging_level='ERROR'); "
+             "print(ray.get(ray.remote(lambda: 'ran').remote()))")
+    result = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=120,
+                            env={**os.environ, "RAY_USAGE_STATS_ENABLED": "0"})
+    assert result.stdout.strip().endswith("ran"), result.stderr[-800:]
 
 
 def _dies_once(item: tuple[str, int]) -> int:

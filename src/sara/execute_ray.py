@@ -18,6 +18,7 @@ import os
 import socket
 import subprocess
 import sys
+import time
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
@@ -91,26 +92,48 @@ def make(workers: int, address: str) -> RayExecutor:
 
 @contextlib.contextmanager
 def local_cluster(nodes: int, cpus_per_node: int, temp_dir: Path) -> Iterator[str]:
-    """`nodes` Ray nodes on this machine (`ray start --head`, then nodes joined to it), stopped on
-    leaving the block, also when a start failed; yields the head's address for `ray_address`. For
-    tests and measurements: nodes on one machine share its cores."""
+    """`nodes` Ray nodes on this machine (a head, then nodes joined to it), stopped on leaving the
+    block, also when a start failed; yields the head's address for `ray_address`. For tests and
+    measurements: nodes on one machine share its cores. Each node is a `ray start --block` process
+    of its own, ended with SIGTERM (its reaper then stops the node's processes): `ray stop` would
+    stop every Ray node of the machine, a user's too."""
     env = {**os.environ, "RAY_USAGE_STATS_ENABLED": "0"}
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
     address = f"127.0.0.1:{port}"
-    each = [f"--num-cpus={cpus_per_node}", "--disable-usage-stats"]
-    try:
-        _ray_cli("start", "--head", f"--port={port}", "--node-ip-address=127.0.0.1", "--include-dashboard=false",
-                 f"--temp-dir={temp_dir}", *each, env=env)
-        for _ in range(nodes - 1):
-            _ray_cli("start", f"--address={address}", "--node-ip-address=127.0.0.1", *each, env=env)
+    each = [f"--num-cpus={cpus_per_node}", "--disable-usage-stats", "--node-ip-address=127.0.0.1"]
+    temp_dir = Path(temp_dir)
+    temp_dir.mkdir(parents=True, exist_ok=True)
+    with contextlib.ExitStack() as stack:
+        stack.enter_context(_ray_node(temp_dir / "node-0.log", "--head", f"--port={port}", "--include-dashboard=false",
+                                      f"--temp-dir={temp_dir}", *each, env=env))
+        for i in range(1, nodes):
+            stack.enter_context(_ray_node(temp_dir / f"node-{i}.log", f"--address={address}", *each, env=env))
         yield address
+
+
+@contextlib.contextmanager
+def _ray_node(log: Path, *args: str, env: dict[str, str], timeout_s: float = 180.0) -> Iterator[None]:
+    """One node, `ray start ARGS --block` (the cluster extra's `ray` beside this Python), its output
+    in `log`; up once it says so, ended on leaving the block. A start that fails or hangs raises
+    CalledProcessError / TimeoutExpired with the end of its output as `stderr`."""
+    command = [str(Path(sys.executable).with_name("ray")), "start", *args, "--block"]
+    with open(log, "wb") as out:
+        proc = subprocess.Popen(command, env=env, stdout=out, stderr=subprocess.STDOUT)
+    try:
+        deadline = time.monotonic() + timeout_s
+        while b"Ray runtime started" not in log.read_bytes():
+            if proc.poll() is not None:
+                raise subprocess.CalledProcessError(proc.returncode, command, stderr=log.read_bytes()[-2000:])
+            if time.monotonic() > deadline:
+                raise subprocess.TimeoutExpired(command, timeout_s, stderr=log.read_bytes()[-2000:])
+            time.sleep(0.2)
+        yield
     finally:
-        _ray_cli("stop", "--force", env=env)
-
-
-def _ray_cli(*args: str, env: dict[str, str]) -> None:
-    """The `ray` command beside this Python (the cluster extra installs it)."""
-    subprocess.run([str(Path(sys.executable).with_name("ray")), *args], check=True, env=env, capture_output=True,
-                   timeout=180)
+        proc.terminate()
+        try:
+            proc.wait(timeout=60)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()

@@ -189,7 +189,9 @@ def _add_pairs(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("pairs", help="select the pairs to match (SARA by default) into OUT/pairs.txt")
     p.add_argument("images", type=Path)
     p.add_argument("out", type=Path)
-    p.add_argument("--method", default=None, help=f"one of {_pair_source_names()} (default sara)")
+    p.add_argument("--pairs", "--method", dest="method", default=None,
+                   help=f"pair source: one of {_pair_source_names()} (default sara), or a pairs file; as "
+                        "`sara run --pairs` (--method: its older name)")
     _add_sequence(p)
     _add_config_options(p)
     _add_output_options(p)

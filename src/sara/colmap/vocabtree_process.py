@@ -6,7 +6,8 @@ under those threads and crashes the process. In a child, a stop ends the child w
 answers received so far are the caller's to keep.
 
 Protocol: the job as JSON in argv; the child prints one JSON line per query, [query, [retrieved,
-...]], then {"ok": true} or {"error": "colmap", "message": ...}, and ends with its parent.
+...]], then {"ok": true} or {"error": "colmap" | "tree", "message": ...} ("tree": the tree file itself
+does not read), and ends with its parent.
 """
 
 from __future__ import annotations
@@ -19,6 +20,10 @@ import tempfile
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
+
+
+class UnreadableTreeError(ValueError):
+    """The tree file given is no visual index COLMAP reads (a bad input, not a failure of COLMAP)."""
 
 
 def run_queries(job: dict[str, Any], queries: Sequence[str] | None,
@@ -45,6 +50,8 @@ def run_queries(job: dict[str, Any], queries: Sequence[str] | None,
                     break
                 answer(message[0], message[1])
             child.wait()
+    if end is not None and end.get("error") == "tree":
+        raise UnreadableTreeError(f"not a vocabulary tree COLMAP can read: {job['tree_path']} ({end['message']})")
     if end is None or "error" in end:
         why = end["message"] if end else f"it ended without a word (exit code {child.returncode})"
         raise ColmapError(f"COLMAP's vocabulary-tree retrieval failed: {why}")
@@ -70,10 +77,22 @@ def main(argv: list[str]) -> int:
         with native.native_errors("retrieve images with the vocabulary tree", Path(job["db_path"]).parent):
             query_all(job, answer)
     except Exception as exc:  # noqa: BLE001 - told to the parent, which raises it
-        print(json.dumps({"error": "colmap", "message": str(exc)}), file=channel, flush=True)
+        kind = "colmap" if _tree_reads(job["tree_path"]) else "tree"
+        print(json.dumps({"error": kind, "message": str(exc)}), file=channel, flush=True)
         return 1
     print(json.dumps({"ok": True}), file=channel, flush=True)
     return 0
+
+
+def _tree_reads(path: str) -> bool:
+    """Whether COLMAP reads the tree file on its own: asked only once the queries failed."""
+    import pycolmap
+
+    try:
+        pycolmap.VisualIndex.read(path)
+    except Exception:  # noqa: BLE001 - any failure to read it says the file is the cause
+        return False
+    return True
 
 
 if __name__ == "__main__":

@@ -28,6 +28,7 @@ import numpy as np
 from tqdm import tqdm
 
 from .. import colmap
+from ..colmap.vocabtree_process import UnreadableTreeError
 from ..io import fingerprint, read_json, write_json_atomic
 from ..io.h5 import read_features
 from ..io.pairs import Pair, canonical_pairs
@@ -202,6 +203,11 @@ def select(ctx: PairContext) -> PairResult:
     tic = time.perf_counter()
     try:
         retrieved, kept = retrieve(ctx, tree_path)
+    except UnreadableTreeError as exc:
+        if not conf.path:  # sara's own tree: damaged, not the user's input
+            raise colmap.ColmapError(str(exc)) from exc
+        raise ValueError(f"{exc}; give a saved pycolmap visual index with vocab_tree.path, or leave it "
+                         "empty to build one") from exc
     except colmap.ColmapError as exc:
         if not conf.path:
             raise
