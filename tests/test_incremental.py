@@ -350,6 +350,29 @@ def test_update_reuses_the_scores_of_unchanged_pairs_and_scores_the_others(monke
     assert cached.direction.tolist() == [[0, 0, 1], [1, 0, 0]]
 
 
+def test_an_update_scores_again_what_an_older_release_scored(scene, copy_of_first, run_cli):
+    """The earlier run's scores.csv written by an older release (no direction columns, which the
+    spanning tree's rule for views moving straight ahead reads): the update scores every candidate
+    again instead of selecting from scores without directions."""
+    images, out = copy_of_first
+    with open(out / "scores.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    columns = [c for c in rows[0] if not c.startswith("direction_")]
+    with open(out / "scores.csv", "w", newline="") as f:
+        writer = csv.DictWriter(f, columns, extrasaction="ignore")
+        writer.writeheader()
+        writer.writerows(rows)
+    _folder(scene, images, sorted(os.listdir(scene))[NUM_FIRST:])
+    assert_ok(run_cli("run", images, out, "-q"))
+    update = json.loads((out / "run.json").read_text())["stages"]["update"]
+    assert update["num_added"] == 2
+    candidates = sum(1 for _ in csv.DictReader(open(out / "scores.csv", newline="")))
+    assert update["num_pairs_scored"] == candidates > 2 * NUM_FIRST + 1  # all, not only the new images'
+    with open(out / "scores.csv", newline="") as f:
+        accepted = [r for r in csv.DictReader(f) if r["accepted"] == "true"]
+    assert accepted and all(np.isfinite(float(r["direction_x"])) for r in accepted)
+
+
 def test_pairs_held_by_the_earlier_matches_are_copied_not_matched(copy_of_first):
     """An update's `reserve` (its earlier matches): a selected pair the reserve holds is copied with
     its matches and geometry; only the pairs it lacks are matched."""

@@ -533,20 +533,24 @@ def test_scores_kept_in_a_journal_are_not_made_again_and_equal_new_ones(tmp_path
     assert len(calls) == 4 and len(list((tmp_path / "journal").glob("*.json"))) == 4
 
 
-def test_a_journal_written_before_the_direction_reads_it_as_unknown(tmp_path):
-    """A run stopped by an earlier version resumes: its journal's rows (rotation, no direction) read
-    with the direction NaN, the rest as written."""
+def test_a_journal_row_written_before_the_direction_is_scored_again(tmp_path):
+    """A run stopped by an earlier version resumes: its journal's rows without a direction (which the
+    spanning tree's rule for views moving straight ahead reads) are not taken, so those pairs are
+    scored again; rows of this release beside them read as written."""
     import json
 
     from sara.scoring import ScoreJournal
     from sara.scoring.journal import _settings
 
     journal = ScoreJournal(tmp_path / "journal", "inputs").open()
-    row = ["a.png", "b.png", 50, 40, 0.2, 12.5, 0.2, True, "", 44, [0.1, 0.0, 0.0]]
-    (journal.folder / f"{_settings(ScoreConfig(), 0)}-old.json").write_text(json.dumps([row]))
-    score = journal.scored(ScoreConfig(), 0)[("a.png", "b.png")]
-    assert (score.num_inliers, score.num_inliers_all, score.rotvec) == (40, 44, (0.1, 0.0, 0.0))
-    assert np.all(np.isnan(score.direction))
+    old = ["a.png", "b.png", 50, 40, 0.2, 12.5, 0.2, True, "", 44, [0.1, 0.0, 0.0]]
+    new = ["a.png", "c.png", 50, 40, 0.2, 12.5, 0.2, True, "", 44, [0.1, 0.0, 0.0], [0.0, 0.0, 1.0]]
+    (journal.folder / f"{_settings(ScoreConfig(), 0)}-old.json").write_text(json.dumps([old, new]))
+    scored = journal.scored(ScoreConfig(), 0)
+    assert list(scored) == [("a.png", "c.png")]
+    score = scored[("a.png", "c.png")]
+    assert (score.num_inliers, score.num_inliers_all, score.rotvec, score.direction) == \
+        (40, 44, (0.1, 0.0, 0.0), (0.0, 0.0, 1.0))
 
 
 def test_the_journal_of_features_made_elsewhere_is_keyed_by_the_features_file(tmp_path):

@@ -192,3 +192,11 @@ def read_scores_csv(path: Path) -> tuple[PairScores, list[str] | None]:
     )
     roles = [r["role"] for r in rows]
     return scores, (roles if any(roles) else None)
+
+
+def older_columns(path: Path) -> list[str]:
+    """The columns of OPTIONAL_COLUMNS that a scores file lacks: it was written by an older release,
+    before the selection used them (empty: a file of this release)."""
+    with open(path, newline="", encoding="utf-8") as f:
+        fields = next(csv.reader(f), [])
+    return [c for c in OPTIONAL_COLUMNS if c not in fields]

@@ -56,7 +56,7 @@ class ScoreJournal:
         for path in sorted(self.folder.glob(f"{_settings(conf, seed)}-*.json")):
             try:
                 rows = json.loads(path.read_text(encoding="utf-8"))
-                found.update({(a, b): _score(fields) for a, b, *fields in rows})
+                found.update({(a, b): score for a, b, *fields in rows if (score := _score(fields)) is not None})
             except (OSError, ValueError, TypeError):
                 logger.debug("score journal: %s does not read, its pairs are scored again", path)
         return found
@@ -76,12 +76,16 @@ class ScoreJournal:
         shutil.rmtree(self.folder, ignore_errors=True)
 
 
-def _score(fields: list) -> PairScore:
+def _score(fields: list) -> PairScore | None:
     """A journal row's score (after the names): the plain fields, then the rotation and the
-    direction as lists; a row written before the direction was kept reads it as unknown (NaN)."""
+    direction as lists. None for a row of an older release, written before the direction was kept:
+    the selection reads it (the spanning tree's rule for views moving straight ahead), so the pair
+    is scored again."""
     vectors = [tuple(f) for f in fields if isinstance(f, list)]
+    if len(vectors) < 2:
+        return None
     plain = [f for f in fields if not isinstance(f, list)]
-    return PairScore(*plain, rotvec=vectors[0], **({"direction": vectors[1]} if len(vectors) > 1 else {}))
+    return PairScore(*plain, rotvec=vectors[0], direction=vectors[1])
 
 
 def _settings(conf: ScoreConfig, seed: int) -> str:

@@ -23,7 +23,7 @@ import shutil
 import numpy as np
 
 from ...io.pairs import Pair
-from ...io.scores import PairScores, read_scores_csv, take_scores
+from ...io.scores import PairScores, older_columns, read_scores_csv, take_scores
 from .. import Extension, PairContext, PairResult
 from .source import SCORES_NAME, select
 
@@ -66,6 +66,11 @@ def _canonical(pair: Pair) -> Pair:
 def _kept_scores(extension: Extension, kept_names: set[str]) -> PairScores | None:
     """The earlier candidates' scores between images that stay unchanged (None when there are none)."""
     if extension.scores_path is None:
+        return None
+    older = older_columns(extension.scores_path)
+    if older:  # what the selection now reads of a score (its direction, ...) is not there: score again
+        logger.info("update: the earlier scores were written by an older release (no %s): every candidate "
+                    "is scored again", ", ".join(older))
         return None
     scores, _ = read_scores_csv(extension.scores_path)
     rows = [k for k, (a, b) in enumerate(zip(scores.name0, scores.name1)) if a in kept_names and b in kept_names]
