@@ -20,8 +20,9 @@ with the stages it had finished.
 With --resume (and a run folder kept by --keep-runs, in a WORK without that row) a stopped run is
 continued in place: the pipeline skips the stages it finished, and the row adds their earlier times.
 To run one bench beside another at a lower priority, `nice` is not enough where the kernel shares the
-CPU by session (autogroup: each child starts a session of its own); write 19 to
-/proc/CHILD_PID/autogroup as well.
+CPU by session (autogroup: each child starts a session of its own): a child started at a niceness
+above 0 (`nice -n 19 python lab/scripts/scale_e2e.py ...`) gives its session that niceness too
+(/proc/self/autogroup, where the kernel has it).
 
     python lab/scripts/scale_e2e.py --sizes 200,1000 --out WORK
     python lab/scripts/scale_e2e.py --sizes 200 --methods sara,exhaustive --out WORK
@@ -477,6 +478,17 @@ def report(work: Path) -> None:
     print(f"-> {work / 'scale_e2e.md'}, {work / 'scale_e2e.png'}")
 
 
+def _session_niceness() -> None:
+    """The child's session (its own autogroup) at the niceness it was started with, so that `nice`
+    lowers the bench against the rest of the machine; nothing where the kernel has no autogroups."""
+    niceness = os.nice(0)
+    if niceness > 0:
+        try:
+            Path("/proc/self/autogroup").write_text(str(niceness))
+        except OSError:
+            pass
+
+
 def main() -> None:
     if len(sys.argv) > 1 and sys.argv[1] == "--child":
         ap = argparse.ArgumentParser()
@@ -486,6 +498,7 @@ def main() -> None:
         ap.add_argument("--set", action="append", default=[])
         ap.add_argument("--resume", action="store_true")
         a = ap.parse_args(sys.argv[2:])
+        _session_niceness()
         child_main(a.world, a.run, a.method, dict(item.split("=", 1) for item in a.set), a.resume)
         return
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
