@@ -11,6 +11,7 @@ import cv2
 import numpy as np
 import pytest
 
+from harness import assert_error
 from sara import video
 from sara.video import FrameSettings, frame_name, frames_for_run, pick_sharp, window_bounds
 
@@ -560,6 +561,15 @@ def test_a_video_without_frames_and_a_file_of_unknown_kind_are_refused(tmp_path,
     (tmp_path / "capture.xyz").write_bytes(b"data")
     result = run_cli("run", tmp_path / "capture.xyz", tmp_path / "out2")
     assert result.code == 2 and "neither a folder of images nor a video" in result.error_lines[0], result.err
+
+
+@pytest.mark.parametrize("name, hint", [("photos.zip", "an archive; unpack it"), ("shots.tar.gz", "an archive"),
+                                        ("IMG_0001.JPG", "one image; give the folder that holds the images")])
+def test_an_archive_or_one_image_is_told_what_to_give_instead(name, hint, tmp_path, run_cli):
+    (tmp_path / name).write_bytes(b"data")
+    result = run_cli("run", tmp_path / name, tmp_path / "out")
+    assert_error(result, 2, "neither a folder of images nor a video", hint)
+    assert "video extensions" not in result.err and not (tmp_path / "out").exists()
 
 
 def test_commands_that_take_images_only_point_a_video_to_sara_run(tmp_path, run_cli):

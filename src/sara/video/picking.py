@@ -15,7 +15,7 @@ import numpy as np
 from tqdm import tqdm
 
 from ..io import atomic_path, file_digest
-from ..io.images import VIDEO_EXTENSIONS, list_image_files
+from ..io.images import HEIC_EXTENSIONS, IMAGE_EXTENSIONS, VIDEO_EXTENSIONS, WEB_FORMATS, list_image_files
 
 logger = logging.getLogger(__name__)
 
@@ -128,6 +128,20 @@ class FrameSettings:
 # ---------------------------------------------------------------------------------------------
 
 
+ARCHIVE_SUFFIXES = (".zip", ".tar", ".tgz", ".tar.gz", ".tar.bz2", ".tar.xz", ".7z", ".rar")
+
+
+def _what_to_give(source: Path) -> str:
+    """What to give instead of the file `source`: its folder for an image, the unpacked folder for an
+    archive ("" for another file: the video extensions are listed instead)."""
+    name = source.name.lower()
+    if name.endswith(ARCHIVE_SUFFIXES):
+        return ": an archive; unpack it and give the folder of images it holds"
+    if name.endswith(IMAGE_EXTENSIONS + HEIC_EXTENSIONS + tuple(WEB_FORMATS)):
+        return f": one image; give the folder that holds the images, {source.parent}"
+    return ""
+
+
 def find_videos(source: Path, *, recursive: bool = False) -> list[Path]:
     """The videos that `sara run SOURCE` reconstructs from: [SOURCE] for a video file, the videos
     of a folder that holds no image (and of its sub-folders, `recursive`), or [] for a folder of
@@ -137,8 +151,8 @@ def find_videos(source: Path, *, recursive: bool = False) -> list[Path]:
     if source.is_file():
         if source.suffix.lower() in VIDEO_EXTENSIONS:
             return [source]
-        raise ValueError(f"{source} is neither a folder of images nor a video (video extensions: "
-                         f"{', '.join(VIDEO_EXTENSIONS)})")
+        hint = _what_to_give(source) or f" (video extensions: {', '.join(VIDEO_EXTENSIONS)})"
+        raise ValueError(f"{source} is neither a folder of images nor a video{hint}")
     if not source.is_dir():
         return []
     found = source.rglob("*") if recursive else source.iterdir()
