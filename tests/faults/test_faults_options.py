@@ -76,7 +76,7 @@ EVALUATE = {
     "folder without a model": (lambda t, o, g: (t, g), 2, "holds no COLMAP model"),
     "missing model folder": (lambda t, o, g: (t / "nope", g), 2, "does not exist"),
     "ground truth of another scene": (lambda t, o, g: (o, "OTHER"), 2, "share no image name", "another scene"),
-    "missing ground truth": (lambda t, o, g: (o, t / "nope"), 2, "ground-truth model folder not found"),
+    "missing ground truth": (lambda t, o, g: (o, t / "nope"), 2, "ground truth not found"),
     "damaged model": (lambda t, o, g: (_damaged_model(o), g), 2, "no readable COLMAP model"),
 }
 

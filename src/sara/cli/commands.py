@@ -105,7 +105,7 @@ def cmd_evaluate(args: argparse.Namespace) -> None:
     from ..evaluation import evaluate, format_table
 
     if not args.gt.exists():
-        raise FileNotFoundError(f"ground-truth model folder not found: {args.gt}")
+        raise FileNotFoundError(f"ground truth not found: {args.gt} (a COLMAP model folder or a transforms.json)")
     model = args.model
     if (model / "sparse").is_dir():
         model = model / "sparse"

@@ -168,7 +168,8 @@ def _add_run(sub: argparse._SubParsersAction) -> None:
                                                             "instead of --frames")
     p.add_argument("--mapper", choices=["incremental", "global"], help="COLMAP mapper (default incremental)")
     _add_sequence(p)
-    p.add_argument("--gt", type=Path, help="ground-truth model folder: evaluate the result against it")
+    p.add_argument("--gt", type=Path, help="known poses, a COLMAP model folder or a transforms.json (nerfstudio, "
+                                           "instant-ngp, NeRF synthetic): evaluate the result against them")
     p.add_argument("--export", choices=_export_format_names(),
                    help="also export the model into OUT/<format> (see `sara export`)")
     _add_config_options(p)
@@ -220,7 +221,8 @@ def _add_map(sub: argparse._SubParsersAction) -> None:
 def _add_evaluate(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("evaluate", help="compare a model with a ground-truth model")
     p.add_argument("model", type=Path, help="a model folder, a sparse/ folder, or a sara output folder")
-    p.add_argument("gt", type=Path, help="ground-truth model folder (COLMAP text or binary)")
+    p.add_argument("gt", type=Path, help="known poses: a COLMAP model folder (text or binary), or a transforms.json "
+                                         "(nerfstudio, instant-ngp, NeRF synthetic; the file or its folder)")
     p.add_argument("--json", type=Path, help="also write the metrics to this JSON file")
     _add_output_options(p)
     p.set_defaults(handler=commands.cmd_evaluate)

@@ -17,6 +17,7 @@ import numpy as np
 from .. import colmap
 from ..io import write_json_atomic
 from ..tables import format_number, text_table
+from .ground_truth import load_ground_truth, match_names
 from .metrics import (
     DEFAULT_THRESHOLDS_DEG,
     absolute_metrics,
@@ -57,9 +58,10 @@ def _read_components(model_dirs: Sequence[Path]) -> list[colmap.ModelSummary]:
     return recs
 
 
-def gt_image_names(gt_dir: Path) -> set[str]:
-    """Names of the posed images of a ground-truth model (FileNotFoundError when it holds none)."""
-    return set(colmap.load_poses(Path(gt_dir)))
+def gt_image_names(gt_dir: Path, names: Sequence[str]) -> set[str]:
+    """Which of `names` the ground truth at `gt_dir` poses (a COLMAP model or a transforms.json,
+    its names matched as `ground_truth.match_names` does; FileNotFoundError when it holds none)."""
+    return set(match_names(load_ground_truth(Path(gt_dir)), names)) & set(names)
 
 
 def evaluate_models(model_dirs: list[Path] | Path, gt_dir: Path, *,
@@ -70,7 +72,8 @@ def evaluate_models(model_dirs: list[Path] | Path, gt_dir: Path, *,
     Args:
         model_dirs: estimated COLMAP model folders (one per component), or one folder. Missing
             folders are skipped; with none left the estimate is scored as a complete failure.
-        gt_dir: ground-truth COLMAP model folder (poses of all images).
+        gt_dir: the ground truth: a COLMAP model folder (poses of all images) or a transforms.json
+            (`ground_truth`).
         thresholds_deg: thresholds of the pose AUC, in degrees.
 
     Returns:
@@ -92,7 +95,7 @@ def evaluate_models(model_dirs: list[Path] | Path, gt_dir: Path, *,
     """
     if isinstance(model_dirs, (str, os.PathLike)):
         model_dirs = [Path(model_dirs)]
-    gt = colmap.load_poses(Path(gt_dir))
+    gt = load_ground_truth(Path(gt_dir))
     metrics = failure_metrics(len(gt), thresholds_deg)
     recs = [rec for rec in _read_components(model_dirs) if rec.num_registered > 0]
     if not recs:
@@ -102,6 +105,7 @@ def evaluate_models(model_dirs: list[Path] | Path, gt_dir: Path, *,
         logger.warning("No estimated model with registered images: scored as a failure")
         return metrics
     names = set().union(*(rec.poses.keys() for rec in recs))
+    gt = match_names(gt, names)
     if not names & gt.keys():
         raise ValueError(f"the model and the ground truth {gt_dir} share no image name (model: e.g. "
                          f"{sorted(names)[0]!r}; ground truth: e.g. {sorted(gt)[0]!r}): is it the ground truth "

@@ -251,12 +251,12 @@ def _check_ground_truth(gt_dir: Path, images_root: Path, names: list[str] | None
     """A ground truth that does not exist, holds no model, or shares no image name with the images
     fails before any work."""
     if not gt_dir.exists():
-        raise FileNotFoundError(f"ground-truth folder not found: {gt_dir}")
+        raise FileNotFoundError(f"ground truth not found: {gt_dir} (a COLMAP model folder or a transforms.json)")
     if names is None:
         return
     from ..evaluation import gt_image_names
 
-    common = gt_image_names(gt_dir) & set(names)
+    common = gt_image_names(gt_dir, names)
     if not common:
         raise ValueError(f"the ground truth {gt_dir} shares no image name with {images_root}: is it the ground "
                          "truth of another scene?")

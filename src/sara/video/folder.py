@@ -244,9 +244,14 @@ def frames_ground_truth(gt_dir: Path, out_dir: Path) -> Path:
 
     Raises FileNotFoundError for a missing ground truth, ValueError when it poses none of the frames.
     """
+    from ..evaluation.ground_truth import transforms_file
+
     gt_dir = Path(gt_dir)
     if not gt_dir.exists():
         raise FileNotFoundError(f"ground-truth folder not found: {gt_dir}")
+    if transforms_file(gt_dir) is not None:
+        raise ValueError(f"the ground truth of a video's frames is a COLMAP model of them ({gt_dir} is a "
+                         "transforms.json): its frames are named <video stem>_f<frame index>.png")
     record = read_record(out_dir) or {}
     names = {frame["name"] for video in record.get("videos", []) for frame in video["frames"]}
     posed = set(colmap_model.read_model(gt_dir).names)
