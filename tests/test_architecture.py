@@ -21,7 +21,7 @@ FLOORS = {
     "colmap": 2, "weights": 2,
     "features": 3, "matchers": 3, "scoring": 3, "retrieval": 3, "selection": 3, "evaluation": 3,
     "execute_ray": 3, "model_files": 3,
-    "cameras": 4, "overlay": 4,
+    "cameras": 4, "overlay": 4, "masks": 4,
     "extract": 4, "incremental": 4, "match": 4, "mapping": 4, "map_retries": 4, "map_schedule": 4, "pairs": 4,
     "gt_pairs": 4, "synthetic": 4, "video": 4,
     "pipeline": 5, "export": 5,

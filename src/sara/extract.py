@@ -15,7 +15,7 @@ import h5py
 import numpy as np
 from tqdm import tqdm
 
-from . import colmap, overlay
+from . import colmap, masks, overlay
 from .cameras import GROUPED_MODES, camera_sharing, share_per_group
 from .config import ExtractConfig
 from .execute import Beside, Executor, SerialExecutor, for_device, single_threaded_torch_in_worker
@@ -39,7 +39,7 @@ class OutputMismatchError(OutputStateError, ValueError):
 
 #: settings added after outputs existed, with their defaults: at that default they stay out of the
 #: key, so features extracted by an earlier sara are still used (not refused as "other settings")
-_LATER_SETTINGS = {"estimate_focal": True}
+_LATER_SETTINGS = {"estimate_focal": True, "mask_path": ""}
 
 
 #: digests of the images' bytes, kept between runs (see `sara.io.images.content_digests`)
@@ -48,7 +48,8 @@ DIGESTS_NAME = "image-digests.json"
 
 def settings_of(conf: ExtractConfig) -> dict:
     """The extraction settings that key the features (those added later drop out at their default)."""
-    return {k: v for k, v in conf.__dict__.items() if not (k in _LATER_SETTINGS and v == _LATER_SETTINGS[k])}
+    settings = {k: v for k, v in conf.__dict__.items() if not (k in _LATER_SETTINGS and v == _LATER_SETTINGS[k])}
+    return {**settings, "masks": masks.masks_key(conf.mask_path)} if conf.mask_path else settings
 
 
 def stage_key(images: ImageSet, conf: ExtractConfig, out_dir: Path, *, progress: bool = True
@@ -162,6 +163,7 @@ def run(conf: ExtractConfig, images: ImageSet, out_dir: Path, *, executor: Execu
         import_keypoints(db_path, h5_path, kept)
         estimate_with = _from_features(h5_path) if wants_focal else None
     info = summarize(counts)
+    info["masked_keypoints"] = masks.apply(conf.mask_path, db_path, h5_path, images)
     info["static_keypoints"] = overlay.remove_static(db_path, h5_path, images, out_dir / ".sara")
     if info["static_keypoints"]["num_keypoints"] and estimate_with is not None:  # fitted with an overlay's matches
         estimate_with = _from_features(h5_path)

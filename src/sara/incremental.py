@@ -31,7 +31,7 @@ from typing import Any
 
 import h5py
 
-from . import colmap, extract, overlay
+from . import colmap, extract, masks, overlay
 from .cameras import camera_sharing, may_leave_single, share_per_group
 from .colmap.model import write_model
 from .config import ExtractConfig
@@ -297,6 +297,7 @@ def _update_copies(conf: ExtractConfig, images: ImageSet, out_dir: Path, change:
     if grouped:  # the new images' groups, those of kept images too: the camera of a group's oldest image
         share_per_group(db, images, grouped)
     _write_features(out_dir, conf, images, change, extracted)
+    masks.apply(conf.mask_path, db, work / features_file_name(conf), come)
     if (out_dir / ".sara" / overlay.CELLS_NAME).exists():  # the overlay the first run found: out of these too
         overlay.remove_static(db, work / features_file_name(conf), come, out_dir / ".sara")
     return len(come.names) - len(failed), failed  # over every attempt: a killed update resumed counts them once

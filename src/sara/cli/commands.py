@@ -10,7 +10,7 @@ from typing import Any
 #: command-line flags that set a configuration key (applied over the preset and the -s overrides)
 FLAG_OVERRIDES = (("recursive", "images.recursive"), ("camera_mode", "extract.camera_mode"), ("seed", "seed"),
                   ("mapper", "map.mapper"), ("workers", "execute.workers"), ("executor", "execute.executor"),
-                  ("ray_address", "execute.ray_address"), ("sequence", "sequence.mode"))
+                  ("ray_address", "execute.ray_address"), ("sequence", "sequence.mode"), ("masks", "extract.mask_path"))
 
 
 def config_from_args(args: argparse.Namespace, pair_source: Any = None) -> Any:

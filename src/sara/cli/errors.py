@@ -28,7 +28,7 @@ EXIT_TERMINATED = 128 + signal.SIGTERM  # 143
 FLAGS = {"seed": "--seed", "execute.workers": "--workers", "execute.executor": "--executor",
          "execute.ray_address": "--ray-address", "map.mapper": "--mapper", "extract.camera_mode": "--camera-mode",
          "images.recursive": "--recursive", "pairs.method": "--pairs",
-         "sequence.mode": "--sequence"}
+         "sequence.mode": "--sequence", "extract.mask_path": "--masks"}
 
 #: termination signals received by this command (the error that follows one is reported as it)
 RECEIVED_SIGNALS: list[int] = []

@@ -73,6 +73,10 @@ class ExtractConfig:
         EXIF focal length nor camera_params: estimate its focal length from pairs of neighbouring images and use
         it where it is at least 2.5x the prior (long lenses; `sara.scoring.focal`).""")
     num_threads: int = option(-1, threads(), "COLMAP's extraction threads; -1: every core.")
+    mask_path: str = option("", text(), """A folder of masks (--masks): keypoints on a mask's black pixels
+        are left out (an operator's hand, a car's bonnet, people walking through, the sky). A mask is an
+        image of its image's shape, DIR/<image name>.png as COLMAP names it, DIR/<name without extension>.png
+        as nerfstudio does, or under the image's own name; an image without one is used whole (`sara.masks`).""")
 
     def __post_init__(self) -> None:
         validate(self)

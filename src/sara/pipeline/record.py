@@ -139,6 +139,15 @@ def _cameras_note(extract_info: dict[str, Any]) -> str:
     return f", {num} camera{'s' if num != 1 else ''} ({CAMERA_MODES.get(mode, mode)})"
 
 
+def _masks_note(extract_info: dict[str, Any]) -> str:
+    """` (12 per image on the masks' black pixels left out)` where masks were given."""
+    masked = extract_info.get("masked_keypoints") or {}
+    if not masked or not extract_info.get("num_images"):
+        return ""
+    per_image = masked["num_keypoints"] / extract_info["num_images"]
+    return f" ({per_image:.0f} per image on the masks' black pixels left out)"
+
+
 def render_report(report: RunReport) -> str:
     """A short human-readable summary of a run (Markdown)."""
     s = report.stages
@@ -146,7 +155,7 @@ def render_report(report: RunReport) -> str:
     added, before = pr.get("num_added_after_mapping", 0), pr.get("num_added_before_mapping", 0)
     rows = [
         [f"extract ({ex.get('backend', 'sift')})", f"{ex.get('time_s', 0):.1f}",
-         f"{ex.get('keypoints_mean', 0):.0f} keypoints per image" + _cameras_note(ex)],
+         f"{ex.get('keypoints_mean', 0):.0f} keypoints per image" + _masks_note(ex) + _cameras_note(ex)],
         [f"pairs ({pr.get('method')})", f"{pr.get('time_s', 0):.1f}",
          f"{pr.get('num_pairs', 0)} pairs ({100 * pr.get('fraction_of_exhaustive', 0):.1f}% of exhaustive)"
          + (f", {before} of them added before mapping for weakly matched views" if before else "")

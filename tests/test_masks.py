@@ -1,0 +1,121 @@
+"""Masks (`--masks DIR`): keypoints on a mask's black pixels are left out of the features file and
+the database before any pair is scored or matched; bad masks are one line before any work."""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import shutil
+import sqlite3
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+from PIL import Image
+
+from harness import assert_error, assert_ok, registered, run_redirected
+
+FIRST = 6  # images of the first run in the update test
+
+
+def _write_masks(images: Path, folder: Path, names: list[str]) -> dict[str, float]:
+    """Masks whose left part is black, named the COLMAP way and the nerfstudio way in turn, every
+    third at half the image's scale; returns name -> the first pixel column kept."""
+    folder.mkdir(parents=True, exist_ok=True)
+    kept_from = {}
+    for k, name in enumerate(names):
+        w, h = Image.open(images / name).size
+        scale = 2 if k % 3 == 2 else 1
+        mask = np.full((h // scale, w // scale), 255, np.uint8)
+        cut = (w // scale) * (k % 4 + 1) // 6
+        mask[:, :cut] = 0
+        target = folder / (f"{name}.png" if k % 2 else f"{Path(name).stem}.png")
+        Image.fromarray(mask).save(target)
+        kept_from[name] = cut * scale
+    return kept_from
+
+
+def _db_keypoints(db: Path) -> dict[str, np.ndarray]:
+    with contextlib.closing(sqlite3.connect(db)) as con:
+        rows = con.execute("SELECT name, rows, cols, data FROM images JOIN keypoints USING (image_id)").fetchall()
+    return {name: np.frombuffer(data, np.float32).reshape(n, c) for name, n, c, data in rows}
+
+
+def _check_features(out: Path, kept_from: dict[str, float]) -> None:
+    """No keypoint left of its mask's cut, in the features file (hloc's pixels, the first centred at
+    0) nor in the database (COLMAP's, at 0.5), and the two hold the same keypoints."""
+    db = _db_keypoints(out / "database.db")
+    with h5py.File(out / "features-sift.h5", "r") as h5:
+        for name, cut in kept_from.items():
+            xy = h5[name]["keypoints"][()]
+            assert len(xy) > 20 and xy[:, 0].min() >= cut - 0.5, (name, cut, xy[:, 0].min())
+            np.testing.assert_allclose(db[name][:, :2] - 0.5, xy, atol=1e-3)
+
+
+def test_keypoints_on_black_pixels_are_left_out(synthetic_scene, tmp_path, run_cli):
+    images, _ = synthetic_scene
+    names = sorted(os.listdir(images))
+    kept_from = _write_masks(images, tmp_path / "masks", names[:-1])  # the last image has no mask
+    out = tmp_path / "out"
+    result = run_cli("extract", images, out, "-q", "--masks", tmp_path / "masks")
+    assert_ok(result)
+    assert f"1 of {len(names)} images have no mask" in result.err
+    _check_features(out, kept_from)
+    counts = {name: len(xy) for name, xy in _db_keypoints(out / "database.db").items()}
+    with h5py.File(out / "features-sift.h5", "r") as h5:
+        assert all(counts[n] == len(h5[n]["keypoints"]) for n in names)
+    info = json.loads((out / ".sara" / "extract.json").read_text())["info"]["masked_keypoints"]
+    assert info["num_images"] == len(names) - 1 and info["num_keypoints"] > 100
+    assert info["images_without_mask"] == [names[-1]]
+    # the same command again: up to date, nothing taken out twice; a mask changed: other features
+    assert_ok(run_cli("extract", images, out, "-q", "--masks", tmp_path / "masks"))
+    assert {name: len(xy) for name, xy in _db_keypoints(out / "database.db").items()} == counts
+    Image.new("L", Image.open(tmp_path / "masks" / f"{Path(names[0]).stem}.png").size, 255).save(
+        tmp_path / "masks" / f"{Path(names[0]).stem}.png")
+    assert_error(run_cli("extract", images, out, "-q", "--masks", tmp_path / "masks"), 3, "other extraction settings")
+
+
+@pytest.mark.parametrize("case, message", [
+    ("no folder", "mask folder not found"),
+    ("no mask fits", "no mask in"),
+    ("another shape", "a mask has its image's shape"),
+    ("not an image", "does not read as an image"),
+])
+def test_a_bad_mask_is_one_line_before_any_work(case, message, synthetic_scene, tmp_path, run_cli):
+    images, _ = synthetic_scene
+    name = sorted(os.listdir(images))[0]
+    masks = tmp_path / "masks"
+    if case != "no folder":
+        masks.mkdir()
+    if case == "no mask fits":
+        Image.new("L", (8, 8), 255).save(masks / "other.png")
+    if case == "another shape":
+        w, h = Image.open(images / name).size
+        Image.new("L", (w, w), 255).save(masks / f"{name}.png")
+    if case == "not an image":
+        (masks / f"{name}.png").write_text("not a picture")
+    result = run_cli("run", images, tmp_path / "out", "-q", "--masks", masks)
+    line = assert_error(result, 2, message)
+    assert str(masks) in line or case in ("another shape", "not an image")
+    if case in ("no folder",):
+        assert not (tmp_path / "out" / "database.db").exists()
+
+
+def test_images_added_to_a_masked_run_are_masked_too(synthetic_scene, tmp_path):
+    source, _ = synthetic_scene
+    names = sorted(os.listdir(source))
+    images = tmp_path / "images"
+    images.mkdir()
+    for name in names[:FIRST]:
+        shutil.copyfile(source / name, images / name)
+    kept_from = _write_masks(source, tmp_path / "masks", names)
+    out = tmp_path / "out"
+    assert_ok(run_redirected("run", images, out, "-q", "--masks", tmp_path / "masks"))
+    for name in names[FIRST:]:
+        shutil.copyfile(source / name, images / name)
+    assert_ok(run_redirected("run", images, out, "-q", "--masks", tmp_path / "masks"))
+    assert json.loads((out / "run.json").read_text())["stages"]["update"]["num_added"] == len(names) - FIRST
+    _check_features(out, kept_from)
+    assert len(registered(out)) >= len(names) - 1
