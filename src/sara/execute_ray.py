@@ -120,7 +120,8 @@ def _ray_node(log: Path, *args: str, env: dict[str, str], timeout_s: float = 180
     CalledProcessError / TimeoutExpired with the end of its output as `stderr`."""
     command = [str(Path(sys.executable).with_name("ray")), "start", *args, "--block"]
     with open(log, "wb") as out:
-        proc = subprocess.Popen(command, env=env, stdout=out, stderr=subprocess.STDOUT)
+        # a session of its own: the node's reaper ends its whole process group, which must not be ours
+        proc = subprocess.Popen(command, env=env, stdout=out, stderr=subprocess.STDOUT, start_new_session=True)
     try:
         deadline = time.monotonic() + timeout_s
         while b"Ray runtime started" not in log.read_bytes():
