@@ -148,7 +148,7 @@ def test_each_videos_camera_gets_its_own_focal_check(tmp_path: Path):
 
 
 def test_the_new_setting_keeps_earlier_extractions_valid(tmp_path: Path):
-    """Features extracted before `estimate_focal` existed keep their key at its default."""
+    """Features extracted before `estimate_focal` and `mask_path` existed keep their key at their defaults."""
     from sara import extract
     from sara.config import ExtractConfig
     from sara.extract import stage_key as _key
@@ -160,11 +160,13 @@ def test_the_new_setting_keeps_earlier_extractions_valid(tmp_path: Path):
         Image.fromarray(pixels).save(tmp_path / f"{k}.png")
     images = scan_images(tmp_path, progress=False)
     out = tmp_path / "out"
-    before = {k: v for k, v in ExtractConfig().__dict__.items() if k != "estimate_focal"}
+    before = {k: v for k, v in ExtractConfig().__dict__.items() if k not in ("estimate_focal", "mask_path")}
     old_key = fingerprint({"images": images.fingerprint_data(), "conf": before})  # as sara keyed it then
     records.mark_done(out, extract.STAGE, old_key)
     assert _key(images, ExtractConfig(), out, progress=False)[0] == old_key
     assert _key(images, ExtractConfig(estimate_focal=False), out, progress=False)[0] != old_key
+    (tmp_path / "masks").mkdir()
+    assert _key(images, ExtractConfig(mask_path=str(tmp_path / "masks")), out, progress=False)[0] != old_key
 
 
 def _extract_focal(images: Path, out: Path, **settings) -> dict | None:
