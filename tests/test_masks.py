@@ -119,3 +119,16 @@ def test_images_added_to_a_masked_run_are_masked_too(synthetic_scene, tmp_path):
     assert json.loads((out / "run.json").read_text())["stages"]["update"]["num_added"] == len(names) - FIRST
     _check_features(out, kept_from)
     assert len(registered(out)) >= len(names) - 1
+    # the nerfstudio export carries them: each frame's mask_path, at its image's size, black where it was
+    assert_ok(run_redirected("export", out, tmp_path / "ns", "--format", "nerfstudio", "-q"))
+    frames = json.loads((tmp_path / "ns" / "transforms.json").read_text())["frames"]
+    assert len(frames) == len(registered(out)) and all(f["mask_path"].startswith("masks/") for f in frames)
+    for frame in frames:
+        name = Path(frame["file_path"]).name
+        mask = np.asarray(Image.open(tmp_path / "ns" / frame["mask_path"]))
+        assert mask.shape[::-1] == Image.open(images / name).size
+        assert not mask[:, : kept_from[name] - 1].any() and mask[:, kept_from[name] + 1:].all()
+    result = run_redirected("export", out, tmp_path / "ns2", "--format", "nerfstudio", "--undistort", "-q")
+    assert_ok(result)
+    assert "masks are not exported beside undistorted images" in result.err
+    assert not (tmp_path / "ns2" / "masks").exists()

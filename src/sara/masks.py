@@ -13,6 +13,7 @@ out again takes out nothing more, so a run killed part-way resumes with the same
 from __future__ import annotations
 
 import logging
+import shutil
 from pathlib import Path, PurePosixPath
 from typing import Any
 
@@ -111,3 +112,32 @@ def apply(mask_path: str, db_path: Path, h5_path: Path, images: ImageSet) -> dic
     logger.info("masks: %d keypoints on the masks' black pixels taken out of %d images", removed, len(found))
     return {"num_images": len(found), "num_keypoints": removed, "images_without_mask": without[:20],
             "num_images_without_mask": len(without)}
+
+
+def run_mask_folder(out_dir: Path) -> Path | None:
+    """The mask folder a finished run used (`extract.mask_path` in its run.json), None without one."""
+    from .io import read_json
+
+    run_json = Path(out_dir) / "run.json"
+    mask_path = read_json(run_json).get("config", {}).get("extract", {}).get("mask_path") if run_json.exists() else ""
+    return Path(mask_path).expanduser() if mask_path else None
+
+
+def write_masks(folder: Path, names: dict[str, str], sizes: dict[str, tuple[int, int]], dest: Path) -> dict[str, str]:
+    """Each image's mask as `dest/<names[name] without extension>.png` at its image's size (black and
+    white, as nerfstudio reads a frame's `mask_path`); returns name -> the file written (relative to
+    dest's parent). Images without a mask get none."""
+    if dest.exists():
+        shutil.rmtree(dest)
+    dest.mkdir(parents=True)
+    written = {}
+    for name, flat in names.items():
+        found = mask_file(folder, name)
+        if found is None:
+            continue
+        keep = _keep(found, sizes[name])
+        mask = Image.fromarray((keep * 255).astype(np.uint8)).resize(sizes[name], Image.NEAREST)
+        target = dest / f"{PurePosixPath(flat).stem}.png"
+        mask.save(target)
+        written[name] = f"{dest.name}/{target.name}"
+    return written

@@ -10,13 +10,17 @@ undistorted ones.
 from __future__ import annotations
 
 import json
+import logging
 from pathlib import Path
 
 import numpy as np
 
+from .. import masks
 from ..colmap import model
 from ..io import write_text_atomic
 from .common import ExportJob, copy_images, flat_names, jpeg_name, undistort_flat
+
+logger = logging.getLogger(__name__)
 
 NERFSTUDIO_PLY = "sparse_pc.ply"
 
@@ -40,7 +44,8 @@ APPLIED_TRANSFORM = np.array([[1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0], [0.0, 
 def write(job: ExportJob) -> None:
     """For nerfstudio, DEST/transforms.json, DEST/images (undistorted with --undistort), DEST/sparse_pc.ply."""
     data = model.read_model(job.model_dir)
-    if job.undistort or any(c.model not in _NERFSTUDIO_MODELS for c in data.cameras.values()):
+    undistorted = job.undistort or any(c.model not in _NERFSTUDIO_MODELS for c in data.cameras.values())
+    if undistorted:
         model_dir = undistort_flat(job.model_dir, job.images_root, job.dest, job.max_image_size, job.progress)
         data = model.read_model(model_dir)
         rename = {name: name for name in data.names}
@@ -48,8 +53,28 @@ def write(job: ExportJob) -> None:
         rename = {name: jpeg_name(flat) for name, flat in flat_names(data.names).items()}
         copy_images(job.images_root, job.dest / "images", rename, job.progress)
     meta = nerfstudio_transforms(data, rename)
+    _add_masks(job, data, rename, meta, undistorted)
     write_ply(job.dest / NERFSTUDIO_PLY, data.points_xyz @ APPLIED_TRANSFORM[:, :3].T, data.points_rgb)
     write_text_atomic(job.dest / "transforms.json", json.dumps(meta, indent=2) + "\n")
+
+
+def _add_masks(job: ExportJob, data: model.ModelData, rename: dict[str, str], meta: dict, undistorted: bool) -> None:
+    """The run's masks (`--masks`) as `DEST/masks/<image>.png`, each frame's `mask_path`, so that
+    nerfstudio leaves out what the reconstruction did; not beside undistorted images, whose pixels
+    moved."""
+    folder = masks.run_mask_folder(job.out_dir)
+    if folder is None:
+        return
+    if undistorted:
+        logger.warning("the run's masks are not exported beside undistorted images; export without --undistort "
+                       "to keep them")
+        return
+    sizes = {name: (data.cameras[int(c)].width, data.cameras[int(c)].height) for name, c in zip(data.names,
+                                                                                               data.camera_ids)}
+    written = masks.write_masks(folder, rename, sizes, job.dest / "masks")
+    for frame, name in zip(meta["frames"], data.names):
+        if name in written:
+            frame["mask_path"] = written[name]
 
 
 def nerfstudio_camera(camera: model.Intrinsics) -> dict[str, float | int | str]:
