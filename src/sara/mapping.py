@@ -274,7 +274,8 @@ def no_model_reason(db_path: Path, conf: MapConfig, min_num_inliers: int) -> str
         return (f"the mapper found no pair of views to start from among the {linked} (the best has {most_inliers} "
                 f"inlier matches): COLMAP's mapper also needs {need_angle:g} degrees of triangulation angle between "
                 "them (a start from views that moved forward, and points seen in two views only, were tried too), and "
-                f"these views are too close together, turn on the spot, or see a flat scene{fisheye}")
+                f"these views are too close together, turn on the spot, or see a flat scene, or something that "
+                f"moves with the camera fills them (a hand, a car's bonnet: leave it out with --masks){fisheye}")
     return f"the global mapper found no model among the {linked}"
 
 
