@@ -132,3 +132,25 @@ def test_images_added_to_a_masked_run_are_masked_too(synthetic_scene, tmp_path):
     assert_ok(result)
     assert "masks are not exported beside undistorted images" in result.err
     assert not (tmp_path / "ns2" / "masks").exists()
+
+
+def test_a_bench_scene_with_masks_uses_them_under_every_naming(five_view_scene, tmp_path):
+    """A scene's masks/ go to every method's extraction, and to its renamed copies under the new names."""
+    from sara import bench
+    from sara.config import make_config
+
+    images, gt = five_view_scene
+    scene = tmp_path / "masked"
+    shutil.copytree(images, scene / "images")
+    shutil.copytree(gt, scene / "gt")
+    names = sorted(os.listdir(images))
+    _write_masks(images, scene / "masks", names)
+    result = bench.run_bench([scene], tmp_path / "bench", make_config(), methods=["exhaustive"], progress=False,
+                             plot=False, name_orders=1)
+    assert [r["scene"] for r in result.rows] == ["masked", "masked~names1"] and all(r["auc@5"] for r in result.rows)
+    for folder in ("masked", "masked~names1"):
+        record = json.loads((tmp_path / "bench" / folder / "features" / ".sara" / "extract.json").read_text())
+        assert record["info"]["masked_keypoints"]["num_images"] == len(names)
+    renamed = tmp_path / "bench" / "renamed" / "masked~names1"
+    mapping = json.loads((renamed / "names.json").read_text())
+    assert sorted(p.name for p in (renamed / "masks").iterdir()) == sorted(f"{new}.png" for new in mapping.values())

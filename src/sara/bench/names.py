@@ -9,8 +9,9 @@ to 0.04, far more than many differences between methods. `sara bench
 several of them instead of one.
 
 A renamed scene is ``ROOT/<scene>~names<k>/`` with ``images/`` (links to the original files, copies
-where links cannot be made) and ``gt/`` (the true model with the new names, COLMAP text), and
-``names.json`` mapping each original name to its new one. It is built in a temporary folder and
+where links cannot be made), ``gt/`` (the true model with the new names, COLMAP text), ``masks/``
+where the scene has masks (each linked under its image's new name), and ``names.json`` mapping each
+original name to its new one. It is built in a temporary folder and
 moved into place, and reused when it exists with the same names.
 """
 
@@ -25,6 +26,7 @@ import numpy as np
 from ..colmap.model import read_model, write_model
 from ..io import link_or_copy, read_json, write_json_atomic
 from ..io.images import list_image_files
+from ..masks import mask_file
 
 #: separates a scene's name from its naming in the renamed scene's folder name
 SEPARATOR = "~names"
@@ -53,7 +55,8 @@ def renamed_scene(scene: Path, root: Path, order: int) -> Path:
         raise ValueError(f"{scene}: renaming needs the images directly in images/, not in sub-folders")
     mapping = new_names(names, order)
     dest = Path(root) / f"{scene.name}{SEPARATOR}{order}"
-    if (dest / MAPPING_FILE).is_file() and read_json(dest / MAPPING_FILE) == mapping:
+    if ((dest / MAPPING_FILE).is_file() and read_json(dest / MAPPING_FILE) == mapping
+            and (dest / "masks").is_dir() == (scene / "masks").is_dir()):
         return dest
     # images the true model has and images/ lacks keep their names (a run counts them as not registered)
     clashes = sorted((set(read_model(scene / "gt").names) - set(mapping)) & set(mapping.values()))
@@ -67,6 +70,11 @@ def renamed_scene(scene: Path, root: Path, order: int) -> Path:
         for name, new in mapping.items():
             link_or_copy(images / name, work / "images" / new, symbolic=True)
         write_model(scene / "gt", work / "gt", rename=mapping, text=True)
+        if (scene / "masks").is_dir():  # each image's mask under its new name, as COLMAP names masks
+            (work / "masks").mkdir()
+            for name, new in mapping.items():
+                if (found := mask_file(scene / "masks", name)) is not None:
+                    link_or_copy(found, work / "masks" / f"{new}.png", symbolic=True)
         write_json_atomic(work / MAPPING_FILE, mapping)
         if dest.exists():
             shutil.rmtree(dest)

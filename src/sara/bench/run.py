@@ -3,7 +3,8 @@
     sara bench SCENE [SCENE ...] --out BENCH [--methods exhaustive,sequential,vocabtree,retrieval,sara]
                [--ablation] [-s key=value ...]
 
-A scene folder holds `images/` and `gt/` (a COLMAP model with the true poses). Per scene:
+A scene folder holds `images/` and `gt/` (a COLMAP model with the true poses), and `masks/` where
+its images have masks (`sara.masks`: every method extracts with them). Per scene:
 
     BENCH/<scene>/features/      SIFT extracted once (`sara extract`), shared by every method
     BENCH/<scene>/<method>/      a `sara run` with pairs.method=<method>, started from a copy of the
@@ -217,6 +218,8 @@ def bench_scene(conf: PipelineConfig, scene: Path, out_dir: Path, methods: Seque
                 ablation: bool = False, progress: bool = True) -> tuple[list[dict], list[dict]]:
     """All methods (and ablation variants) on one scene; returns (method rows, ablation rows)."""
     images, gt = scene_paths(scene)
+    if (Path(scene) / "masks").is_dir():  # a scene's own masks, for every method (`sara.masks`)
+        conf = apply_overrides(conf, {"extract.mask_path": str(Path(scene) / "masks")})
     scene_dir = Path(out_dir) / Path(scene).name
     features_dir = scene_dir / FEATURES_DIR
     logger.info("bench %s: extracting features once for all methods", scene.name)
