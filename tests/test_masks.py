@@ -99,8 +99,7 @@ def test_a_bad_mask_is_one_line_before_any_work(case, message, synthetic_scene, 
     result = run_cli("run", images, tmp_path / "out", "-q", "--masks", masks)
     line = assert_error(result, 2, message)
     assert str(masks) in line or case in ("another shape", "not an image")
-    if case in ("no folder",):
-        assert not (tmp_path / "out" / "database.db").exists()
+    assert not (tmp_path / "out" / "database.db").exists()  # before any work
 
 
 def test_images_added_to_a_masked_run_are_masked_too(synthetic_scene, tmp_path):

@@ -12,6 +12,7 @@ out again takes out nothing more, so a run killed part-way resumes with the same
 
 from __future__ import annotations
 
+import functools
 import logging
 import shutil
 from pathlib import Path, PurePosixPath
@@ -57,6 +58,35 @@ def check_folder(mask_path: str) -> Path:
     return folder
 
 
+def check(mask_path: str, images: ImageSet, *, some: bool = True) -> dict[str, Path]:
+    """Before any work: the mask folder exists, holds a mask for at least one image (with `some`),
+    and each mask found reads as an image of its image's shape (its header only); returns image
+    name -> its mask."""
+    if not mask_path:
+        return {}
+    folder = check_folder(mask_path)
+    found = {name: path for name in images.names if (path := mask_file(folder, name)) is not None}
+    if some and not found:
+        example = images.names[0] if images.names else "IMAGE"
+        raise ValueError(f"no mask in {folder} for any of the {len(images.names)} images (looked for e.g. "
+                         f"{example}.png and {PurePosixPath(example).with_suffix('.png')})")
+    for name, path in found.items():
+        try:
+            with Image.open(path) as im:
+                size = im.size
+        except OSError as error:
+            raise ValueError(f"mask {path} does not read as an image ({error})") from error
+        _check_shape(path, size, images.sizes[name])
+    return found
+
+
+def _check_shape(mask_path: Path, mask_size: tuple[int, int], size: tuple[int, int]) -> None:
+    (mw, mh), (w, h) = mask_size, size
+    if abs(mw / mh - w / h) > ASPECT_TOLERANCE * (w / h):
+        raise ValueError(f"mask {mask_path} is {mw}x{mh}, its image {w}x{h}: a mask has its image's shape "
+                         "(an image turned by its EXIF orientation needs its mask turned too)")
+
+
 def _keep(mask_path: Path, size: tuple[int, int]) -> np.ndarray:
     """(H, W) bool, True where keypoints stay, at the mask's own resolution; a ValueError names a mask
     that is no image or whose shape is not its image's."""
@@ -65,10 +95,7 @@ def _keep(mask_path: Path, size: tuple[int, int]) -> np.ndarray:
             keep = np.asarray(im.convert("L")) > 0
     except (OSError, ValueError) as error:
         raise ValueError(f"mask {mask_path} does not read as an image ({error})") from error
-    (w, h), (mh, mw) = size, keep.shape
-    if abs(mw / mh - w / h) > ASPECT_TOLERANCE * (w / h):
-        raise ValueError(f"mask {mask_path} is {mw}x{mh}, its image {w}x{h}: a mask has its image's shape "
-                         "(an image turned by its EXIF orientation needs its mask turned too)")
+    _check_shape(mask_path, keep.shape[::-1], size)
     return keep
 
 
@@ -83,18 +110,16 @@ def _dropped(keep: np.ndarray, size: tuple[int, int], xy: np.ndarray) -> np.ndar
 def apply(mask_path: str, db_path: Path, h5_path: Path, images: ImageSet) -> dict[str, Any]:
     """Take the keypoints on the masks' black pixels out of the features file and the database;
     returns what was done (for the extract stage's record). Nothing without a mask folder."""
-    if not mask_path:
-        return {}
-    folder = check_folder(mask_path)
-    found = {name: path for name in images.names if (path := mask_file(folder, name)) is not None}
+    found = check(mask_path, images, some=False)  # the run checked that some image has one
     if not found:
-        example = images.names[0] if images.names else "IMAGE"
-        raise ValueError(f"no mask in {folder} for any of the {len(images.names)} images (looked for e.g. "
-                         f"{example}.png and {PurePosixPath(example).with_suffix('.png')})")
-    keeps = {name: _keep(path, images.sizes[name]) for name, path in found.items()}
+        return {"num_images": 0, "num_keypoints": 0, "num_images_without_mask": len(images.names)}
+
+    @functools.lru_cache(maxsize=2)  # one mask at a time in memory (the features file, then the database)
+    def keep(name: str) -> np.ndarray:
+        return _keep(found[name], images.sizes[name])
 
     def dropped(name: str, xy: np.ndarray) -> np.ndarray | None:
-        return _dropped(keeps[name], images.sizes[name], xy) if name in keeps and len(xy) else None
+        return _dropped(keep(name), images.sizes[name], xy) if name in found and len(xy) else None
 
     with h5py.File(h5_path, "r+") as h5:
         for name in found:
@@ -106,6 +131,7 @@ def apply(mask_path: str, db_path: Path, h5_path: Path, images: ImageSet) -> dic
                 write_features(h5, name, feats)
     removed = colmap.keep_keypoints(db_path, lambda name, xy: dropped(name, np.asarray(xy) - 0.5))
     without = [n for n in images.names if n not in found]
+    folder = check_folder(mask_path)
     if without:
         logger.warning("%d of %d images have no mask in %s and are used whole (e.g. %s)", len(without),
                        len(images.names), folder, without[0])

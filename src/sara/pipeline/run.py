@@ -10,7 +10,7 @@ import logging
 from pathlib import Path
 from typing import Any
 
-from .. import colmap, extract, incremental, mapping, match, video, weights
+from .. import colmap, extract, incremental, mapping, masks, match, video, weights
 from ..config import PipelineConfig
 from ..execute import Executor, make_executor
 from ..features import BACKENDS as FEATURE_BACKENDS
@@ -46,6 +46,7 @@ def run(conf: PipelineConfig, images_root: Path, out_dir: Path, *, gt_dir: Path 
                          "at least 2")
     if gt_dir is not None:
         _check_ground_truth(Path(gt_dir), images_root, images.names)
+    masks.check(conf.extract.mask_path, images)  # a missing folder, no mask that fits, a mask of another shape
     pairs_file = pairs_stage.pair_source_file(conf.pairs.method)
     if pairs_file is not None and stop_after != "extract":
         read_pairs(pairs_file, known_names=images.names)  # unreadable, or naming other images: before any work
