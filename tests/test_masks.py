@@ -153,3 +153,24 @@ def test_a_bench_scene_with_masks_uses_them_under_every_naming(five_view_scene, 
     renamed = tmp_path / "bench" / "renamed" / "masked~names1"
     mapping = json.loads((renamed / "names.json").read_text())
     assert sorted(p.name for p in (renamed / "masks").iterdir()) == sorted(f"{new}.png" for new in mapping.values())
+
+
+def test_candidates_matching_at_the_same_pixels_point_to_masks(caplog):
+    """Most candidates without parallax (something that moves with the camera, or a camera that stood
+    still) give one warning naming --masks; a scene's few such pairs, or pairs not triangulated, none."""
+    from sara.io.scores import PairScores
+    from sara.pairs.sara.source import _warn_if_still
+
+    def scores(parallax):
+        n = len(parallax)
+        return PairScores(name0=[f"a{k}" for k in range(n)], name1=[f"b{k}" for k in range(n)],
+                          num_matches=np.full(n, 50), num_inliers=np.full(n, 40), overlap=np.full(n, 0.1),
+                          parallax_deg=np.array(parallax, float), weight=np.zeros(n), accepted=np.zeros(n, bool),
+                          reason=["low_parallax"] * n)
+
+    _warn_if_still(scores([0.0] * 18 + [3.0] * 2))
+    assert "18 of 20 candidate pairs match at the same pixels" in caplog.text and "--masks" in caplog.text
+    caplog.clear()
+    _warn_if_still(scores([0.0] * 3 + [3.0] * 17))
+    _warn_if_still(scores([float("nan")] * 20))
+    assert "same pixels" not in caplog.text

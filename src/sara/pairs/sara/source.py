@@ -32,6 +32,9 @@ from .field_of_view import axial_motion, moving_ahead, resolve_tree_overlap
 logger = logging.getLogger(__name__)
 
 SCORES_NAME = "scores.csv"
+#: candidates with less parallax than this "match at the same pixels"; from this share of them on, a warning
+STILL_PARALLAX_DEG = 0.05
+STILL_SHARE = 0.8
 RESCUE_REASON = "low_parallax"
 
 
@@ -50,6 +53,7 @@ def select(ctx: PairContext, cached: PairScores | None = None) -> PairResult:
     candidates: list[Pair] = [(names[i], names[j]) for i, j in edges]
     scores, num_scored = _score_or_reuse(ctx, candidates, cached)
     timings["scoring"] = time.perf_counter() - tic
+    _warn_if_still(scores)
 
     tic = time.perf_counter()
     axial = axial_motion(scores)
@@ -111,6 +115,16 @@ def select(ctx: PairContext, cached: PairScores | None = None) -> PairResult:
         logger.warning("the selected view graph has %d components of sizes %s: they share no reliable geometry "
                        "and will map to separate models", len(sizes), sizes)
     return PairResult(chosen, info, timings, why_empty="" if chosen else _why_empty(info))
+
+
+def _warn_if_still(scores: PairScores) -> None:
+    """Most candidates matching at the same pixels (no parallax at all) say that the camera stood
+    still, or that something moving with it fills the views; the second has a remedy (--masks)."""
+    still = np.count_nonzero(np.asarray(scores.parallax_deg) < STILL_PARALLAX_DEG)
+    if len(scores) >= 10 and still >= STILL_SHARE * len(scores):
+        logger.warning("%d of %d candidate pairs match at the same pixels (parallax under %g degrees): the camera "
+                       "stood still, or something that moves with it fills the views (a hand, a car's bonnet, a "
+                       "mount): leave it out with --masks", still, len(scores), STILL_PARALLAX_DEG)
 
 
 def _why_empty(info: dict[str, Any]) -> str:
