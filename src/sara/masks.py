@@ -150,9 +150,9 @@ def run_mask_folder(out_dir: Path) -> Path | None:
 
 
 def write_masks(folder: Path, names: dict[str, str], sizes: dict[str, tuple[int, int]], dest: Path) -> dict[str, str]:
-    """Each image's mask as `dest/<names[name] without extension>.png` at its image's size (black and
-    white, as nerfstudio reads a frame's `mask_path`); returns name -> the file written (relative to
-    dest's parent). Images without a mask get none."""
+    """Each image's mask as `dest/<names[name]>.png` at its image's size (black and white, as
+    nerfstudio reads a frame's `mask_path`; the whole name, so that `a.jpg` and `a.png` keep a mask
+    each); returns name -> the file written (relative to dest's parent). Images without a mask get none."""
     if dest.exists():
         shutil.rmtree(dest)
     dest.mkdir(parents=True)
@@ -163,7 +163,7 @@ def write_masks(folder: Path, names: dict[str, str], sizes: dict[str, tuple[int,
             continue
         keep = _keep(found, sizes[name])
         mask = Image.fromarray((keep * 255).astype(np.uint8)).resize(sizes[name], Image.NEAREST)
-        target = dest / f"{PurePosixPath(flat).stem}.png"
+        target = dest / f"{flat}.png"
         mask.save(target)
         written[name] = f"{dest.name}/{target.name}"
     return written
