@@ -118,6 +118,7 @@ def test_images_added_to_a_masked_run_are_masked_too(synthetic_scene, tmp_path):
     assert json.loads((out / "run.json").read_text())["stages"]["update"]["num_added"] == len(names) - FIRST
     _check_features(out, kept_from)
     assert len(registered(out)) >= len(names) - 1
+    assert "per image on the masks' black pixels left out" in (out / "report.md").read_text()
     # the nerfstudio export carries them: each frame's mask_path, at its image's size, black where it was
     assert_ok(run_redirected("export", out, tmp_path / "ns", "--format", "nerfstudio", "-q"))
     frames = json.loads((tmp_path / "ns" / "transforms.json").read_text())["frames"]
@@ -174,3 +175,8 @@ def test_candidates_matching_at_the_same_pixels_point_to_masks(caplog):
     _warn_if_still(scores([0.0] * 3 + [3.0] * 17))
     _warn_if_still(scores([float("nan")] * 20))
     assert "same pixels" not in caplog.text
+
+
+def test_a_run_without_masks_says_nothing_of_them(finished_run_template):
+    assert "masks" not in (finished_run_template / "report.md").read_text()
+    assert "masked_keypoints" not in json.loads((finished_run_template / "run.json").read_text())["stages"]["extract"]

@@ -163,7 +163,8 @@ def run(conf: ExtractConfig, images: ImageSet, out_dir: Path, *, executor: Execu
         import_keypoints(db_path, h5_path, kept)
         estimate_with = _from_features(h5_path) if wants_focal else None
     info = summarize(counts)
-    info["masked_keypoints"] = masks.apply(conf.mask_path, db_path, h5_path, images)
+    if masked := masks.apply(conf.mask_path, db_path, h5_path, images):
+        info["masked_keypoints"] = masked
     info["static_keypoints"] = overlay.remove_static(db_path, h5_path, images, out_dir / ".sara")
     if info["static_keypoints"]["num_keypoints"] and estimate_with is not None:  # fitted with an overlay's matches
         estimate_with = _from_features(h5_path)

@@ -110,6 +110,8 @@ def _dropped(keep: np.ndarray, size: tuple[int, int], xy: np.ndarray) -> np.ndar
 def apply(mask_path: str, db_path: Path, h5_path: Path, images: ImageSet) -> dict[str, Any]:
     """Take the keypoints on the masks' black pixels out of the features file and the database;
     returns what was done (for the extract stage's record). Nothing without a mask folder."""
+    if not mask_path:
+        return {}
     found = check(mask_path, images, some=False)  # the run checked that some image has one
     if not found:
         return {"num_images": 0, "num_keypoints": 0, "num_images_without_mask": len(images.names)}

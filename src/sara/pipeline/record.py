@@ -142,7 +142,7 @@ def _cameras_note(extract_info: dict[str, Any]) -> str:
 def _masks_note(extract_info: dict[str, Any]) -> str:
     """` (12 per image on the masks' black pixels left out)` where masks were given."""
     masked = extract_info.get("masked_keypoints") or {}
-    if not masked or not extract_info.get("num_images"):
+    if not masked.get("num_images") or not extract_info.get("num_images"):
         return ""
     per_image = masked["num_keypoints"] / extract_info["num_images"]
     return f" ({per_image:.0f} per image on the masks' black pixels left out)"
