@@ -180,3 +180,32 @@ def test_candidates_matching_at_the_same_pixels_point_to_masks(caplog):
 def test_a_run_without_masks_says_nothing_of_them(finished_run_template):
     assert "masks" not in (finished_run_template / "report.md").read_text()
     assert "masked_keypoints" not in json.loads((finished_run_template / "run.json").read_text())["stages"]["extract"]
+
+
+def test_masks_of_photos_turned_by_their_exif_orientation(synthetic_scene, tmp_path, run_cli):
+    """With images.exif_orientation=apply a photo is read upright, and so is its mask: one of the
+    upright shape is used; one of the stored shape is one line before any work."""
+    source, _ = synthetic_scene
+    images = tmp_path / "images"
+    images.mkdir()
+    for name in sorted(os.listdir(source))[:4]:
+        stored = Image.open(source / name).convert("RGB").transpose(Image.Transpose.ROTATE_90)
+        exif = Image.Exif()
+        exif[0x0112] = 6  # shown turned a quarter clockwise: upright again
+        stored.save(images / f"{Path(name).stem}.jpg", exif=exif, quality=95)
+    names = sorted(os.listdir(images))
+    w, h = Image.open(images / names[0]).size  # stored: portrait
+    masks = tmp_path / "masks"
+    masks.mkdir()
+    for name in names:
+        upright = np.full((w, h), 255, np.uint8)  # (rows, cols) of the upright landscape image
+        upright[:, : h // 2] = 0
+        Image.fromarray(upright).save(masks / f"{name}.png")
+    turned = ["-s", "images.exif_orientation=apply", "--masks", masks]
+    assert_ok(run_cli("extract", images, tmp_path / "out", "-q", *turned))
+    with h5py.File(tmp_path / "out" / "features-sift.h5", "r") as h5:
+        assert all(h5[n]["keypoints"][()][:, 0].min() >= h // 2 - 0.5 for n in names)
+    for name in names:
+        Image.new("L", (w, h), 255).save(masks / f"{name}.png")
+    assert_error(run_cli("extract", images, tmp_path / "out2", "-q", *turned), 2, "a mask has its image's shape")
+    assert not (tmp_path / "out2" / "database.db").exists()

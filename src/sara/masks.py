@@ -58,10 +58,11 @@ def check_folder(mask_path: str) -> Path:
     return folder
 
 
-def check(mask_path: str, images: ImageSet, *, some: bool = True) -> dict[str, Path]:
+def check(mask_path: str, images: ImageSet, *, some: bool = True, upright: bool = False) -> dict[str, Path]:
     """Before any work: the mask folder exists, holds a mask for at least one image (with `some`),
-    and each mask found reads as an image of its image's shape (its header only); returns image
-    name -> its mask."""
+    and each mask found reads as an image of its image's shape (its header only; `upright`: the
+    shape the image's EXIF orientation turns it to, as `images.exif_orientation=apply` reads it);
+    returns image name -> its mask."""
     if not mask_path:
         return {}
     folder = check_folder(mask_path)
@@ -76,7 +77,9 @@ def check(mask_path: str, images: ImageSet, *, some: bool = True) -> dict[str, P
                 size = im.size
         except OSError as error:
             raise ValueError(f"mask {path} does not read as an image ({error})") from error
-        _check_shape(path, size, images.sizes[name])
+        w, h = images.sizes[name]
+        turned = upright and images.orientation.get(name, 1) >= 5  # EXIF 5-8 turn by a quarter
+        _check_shape(path, size, (h, w) if turned else (w, h))
     return found
 
 

@@ -46,7 +46,7 @@ def run(conf: PipelineConfig, images_root: Path, out_dir: Path, *, gt_dir: Path 
                          "at least 2")
     if gt_dir is not None:
         _check_ground_truth(Path(gt_dir), images_root, images.names)
-    masks.check(conf.extract.mask_path, images)  # a missing folder, no mask that fits, a mask of another shape
+    masks.check(conf.extract.mask_path, images, upright=conf.images.exif_orientation == "apply")  # before any work
     pairs_file = pairs_stage.pair_source_file(conf.pairs.method)
     if pairs_file is not None and stop_after != "extract":
         read_pairs(pairs_file, known_names=images.names)  # unreadable, or naming other images: before any work
