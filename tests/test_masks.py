@@ -209,3 +209,18 @@ def test_masks_of_photos_turned_by_their_exif_orientation(synthetic_scene, tmp_p
         Image.new("L", (w, h), 255).save(masks / f"{name}.png")
     assert_error(run_cli("extract", images, tmp_path / "out2", "-q", *turned), 2, "a mask has its image's shape")
     assert not (tmp_path / "out2" / "database.db").exists()
+
+
+def test_one_mask_image_masks_every_image(synthetic_scene, tmp_path, run_cli):
+    """`--masks FILE`: the same mask for every image (a car's bonnet, a mount), at half the scale."""
+    images, _ = synthetic_scene
+    names = sorted(os.listdir(images))
+    w, h = Image.open(images / names[0]).size
+    mask = np.full((h // 2, w // 2), 255, np.uint8)
+    mask[h // 4:, :] = 0  # the lower half
+    Image.fromarray(mask).save(tmp_path / "bonnet.png")
+    assert_ok(run_cli("extract", images, tmp_path / "out", "-q", "--masks", tmp_path / "bonnet.png"))
+    with h5py.File(tmp_path / "out" / "features-sift.h5", "r") as h5:
+        assert all(h5[n]["keypoints"][()][:, 1].max() < h // 2 - 0.5 for n in names)
+    info = json.loads((tmp_path / "out" / ".sara" / "extract.json").read_text())["info"]["masked_keypoints"]
+    assert info["num_images"] == len(names) and info["num_images_without_mask"] == 0

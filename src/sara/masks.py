@@ -1,6 +1,6 @@
 """Masks: the parts of each image whose keypoints the reconstruction must not use (`--masks DIR`,
 `extract.mask_path`): the operator's hand or shadow, a car's bonnet, people walking through, the sky,
-the turntable under an object.
+the turntable under an object. `--masks FILE` gives every image one mask (a bonnet, a mount).
 
 A mask is an image of the same size (or the same shape at another scale) whose black (zero) pixels
 mark what to leave out, found as COLMAP names it, `DIR/<image name>.png`, or as nerfstudio does,
@@ -34,7 +34,10 @@ ASPECT_TOLERANCE = 0.01
 
 
 def mask_file(folder: Path, name: str) -> Path | None:
-    """The mask of image `name` in `folder` (COLMAP's name, nerfstudio's, the image's own), or None."""
+    """The mask of image `name` in `folder` (COLMAP's name, nerfstudio's, the image's own), or None;
+    `folder` may be one mask image instead, every image's (a camera's bonnet, a mount)."""
+    if Path(folder).is_file():
+        return Path(folder)
     path = PurePosixPath(name)
     for candidate in (f"{name}.png", str(path.with_suffix(".png")), name):
         if (Path(folder) / candidate).is_file():
@@ -46,15 +49,17 @@ def masks_key(mask_path: str) -> str:
     """What keys the features besides the setting: every file of the folder, its size and time
     (a mask changed, added or removed makes the features again); a ValueError where it is no folder."""
     folder = check_folder(mask_path)  # before any work
-    files = sorted(p for p in folder.rglob("*") if p.is_file())
-    return fingerprint([[str(p.relative_to(folder)), p.stat().st_size, p.stat().st_mtime_ns] for p in files])
+    files = sorted(p for p in folder.rglob("*") if p.is_file()) if folder.is_dir() else [folder]
+    return fingerprint([[str(p.relative_to(folder)) if p != folder else p.name, p.stat().st_size,
+                         p.stat().st_mtime_ns] for p in files])
 
 
 def check_folder(mask_path: str) -> Path:
-    """The mask folder, or a ValueError naming the setting when it is none."""
+    """The mask folder (or the one mask image), or a ValueError naming the setting when it is none."""
     folder = Path(mask_path).expanduser()
-    if not folder.is_dir():
-        raise ValueError(f"mask folder not found: {folder} (--masks, extract.mask_path)")
+    if not folder.exists():
+        raise ValueError(f"mask folder not found: {folder} (--masks, extract.mask_path: a folder of masks, or one "
+                         "mask image for every image)")
     return folder
 
 

@@ -73,7 +73,8 @@ def _add_config_options(p: argparse.ArgumentParser) -> None:
                    help="how images share cameras (default auto: one camera when all images have the same size and "
                    "EXIF camera, else one per video or per phone by EXIF where images share one)")
     p.add_argument("--masks", metavar="DIR", help="a folder of masks: keypoints on their black pixels are left out "
-                   "(DIR/<image name>.png, or the name without its extension, as COLMAP and nerfstudio name them)")
+                   "(DIR/<image name>.png, or the name without its extension, as COLMAP and nerfstudio name them); "
+                   "one mask image: the same mask for every image")
     p.add_argument("--seed", type=int, help="random seed (default 0): the same inputs give the same pairs")
     p.add_argument("--overwrite", action="store_true", help="redo every stage instead of resuming")
     p.add_argument("--workers", type=int, help="parallel workers (default 0: one per CPU core); results do not change")

@@ -76,7 +76,8 @@ class ExtractConfig:
     mask_path: str = option("", text(), """A folder of masks (--masks): keypoints on a mask's black pixels
         are left out (an operator's hand, a car's bonnet, people walking through, the sky). A mask is an
         image of its image's shape, DIR/<image name>.png as COLMAP names it, DIR/<name without extension>.png
-        as nerfstudio does, or under the image's own name; an image without one is used whole (`sara.masks`).""")
+        as nerfstudio does, or under the image's own name; an image without one is used whole (`sara.masks`). One
+        mask image instead of a folder masks every image (a car's bonnet, a mount).""")
 
     def __post_init__(self) -> None:
         validate(self)
