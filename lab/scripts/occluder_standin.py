@@ -10,7 +10,8 @@ writes the matching masks (black on the ellipse, a few pixels wider), and copies
     python lab/scripts/occluder_standin.py ../shared/data/kitti-seq1 DEST \\
         --texture ../shared/data/strecha-castle-P30/images/0010.jpg [--jitter 6] [--size 0.45]
 
-DEST gets images/ (PNG, the source names), masks/ (DEST/masks/<name>.png), gt/ (a copy) and SCENE.md.
+DEST gets images/ (the source names and formats), masks/ (DEST/masks/<name>.png), gt/ (a copy) and
+SCENE.md.
 """
 
 from __future__ import annotations
@@ -63,8 +64,8 @@ def main() -> None:
         region = frame[y0:y0 + oh, x0:x0 + ow]
         region[inside[:region.shape[0], :region.shape[1]]] = patch[:region.shape[0], :region.shape[1]][
             inside[:region.shape[0], :region.shape[1]]]
-        name = source.with_suffix(".png").name
-        cv2.imwrite(str(images / name), frame)
+        name = source.name  # the true model's name (JPEG kept as JPEG, at quality 95)
+        cv2.imwrite(str(images / name), frame, [cv2.IMWRITE_JPEG_QUALITY, 95])
         mask = np.full((h, w), 255, np.uint8)
         cv2.ellipse(mask, (x0 + ow // 2, y0 + oh // 2), (ow // 2 + 4, oh // 2 + 4), 0, 0, 360, 0, -1)
         cv2.imwrite(str(masks / f"{name}.png"), mask)
