@@ -23,7 +23,7 @@ import numpy as np
 from PIL import Image
 
 from . import colmap
-from .io import fingerprint
+from .io import fingerprint, read_json
 from .io.h5 import has_features, read_open, write_features
 from .io.images import ImageSet
 
@@ -63,16 +63,20 @@ def check_folder(mask_path: str) -> Path:
     return folder
 
 
-def check(mask_path: str, images: ImageSet, *, some: bool = True, upright: bool = False) -> dict[str, Path]:
-    """Before any work: the mask folder exists, holds a mask for at least one image (with `some`),
-    and each mask found reads as an image of its image's shape (its header only; `upright`: the
-    shape the image's EXIF orientation turns it to, as `images.exif_orientation=apply` reads it);
-    returns image name -> its mask."""
+def _found(folder: Path, names: list[str]) -> dict[str, Path]:
+    """Image name -> its mask in `folder`, for the images that have one."""
+    return {name: path for name in names if (path := mask_file(folder, name)) is not None}
+
+
+def check(mask_path: str, images: ImageSet, *, upright: bool = False) -> None:
+    """Before any work: the mask folder exists, holds a mask for at least one image, and each mask
+    found reads as an image of its image's shape (its header only; `upright`: the shape the image's
+    EXIF orientation turns it to, as `images.exif_orientation=apply` reads it)."""
     if not mask_path:
-        return {}
+        return
     folder = check_folder(mask_path)
-    found = {name: path for name in images.names if (path := mask_file(folder, name)) is not None}
-    if some and not found:
+    found = _found(folder, images.names)
+    if not found:
         example = images.names[0] if images.names else "IMAGE"
         raise ValueError(f"no mask in {folder} for any of the {len(images.names)} images (looked for e.g. "
                          f"{example}.png and {PurePosixPath(example).with_suffix('.png')})")
@@ -85,7 +89,6 @@ def check(mask_path: str, images: ImageSet, *, some: bool = True, upright: bool 
         w, h = images.sizes[name]
         turned = upright and images.orientation.get(name, 1) >= 5  # EXIF 5-8 turn by a quarter
         _check_shape(path, size, (h, w) if turned else (w, h))
-    return found
 
 
 def _check_shape(mask_path: Path, mask_size: tuple[int, int], size: tuple[int, int]) -> None:
@@ -120,7 +123,8 @@ def apply(mask_path: str, db_path: Path, h5_path: Path, images: ImageSet) -> dic
     returns what was done (for the extract stage's record). Nothing without a mask folder."""
     if not mask_path:
         return {}
-    found = check(mask_path, images, some=False)  # the run checked that some image has one
+    folder = check_folder(mask_path)
+    found = _found(folder, images.names)  # the run checked them (`check`); an update's new images may have none
     if not found:
         return {"num_images": 0, "num_keypoints": 0, "num_images_without_mask": len(images.names)}
 
@@ -141,7 +145,6 @@ def apply(mask_path: str, db_path: Path, h5_path: Path, images: ImageSet) -> dic
                 write_features(h5, name, feats)
     removed = colmap.keep_keypoints(db_path, lambda name, xy: dropped(name, np.asarray(xy) - 0.5))
     without = [n for n in images.names if n not in found]
-    folder = check_folder(mask_path)
     if without:
         logger.warning("%d of %d images have no mask in %s and are used whole (e.g. %s)", len(without),
                        len(images.names), folder, without[0])
@@ -152,8 +155,6 @@ def apply(mask_path: str, db_path: Path, h5_path: Path, images: ImageSet) -> dic
 
 def run_mask_folder(out_dir: Path) -> Path | None:
     """The mask folder a finished run used (`extract.mask_path` in its run.json), None without one."""
-    from .io import read_json
-
     run_json = Path(out_dir) / "run.json"
     mask_path = read_json(run_json).get("config", {}).get("extract", {}).get("mask_path") if run_json.exists() else ""
     return Path(mask_path).expanduser() if mask_path else None
