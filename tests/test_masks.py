@@ -224,3 +224,18 @@ def test_one_mask_image_masks_every_image(synthetic_scene, tmp_path, run_cli):
         assert all(h5[n]["keypoints"][()][:, 1].max() < h // 2 - 0.5 for n in names)
     info = json.loads((tmp_path / "out" / ".sara" / "extract.json").read_text())["info"]["masked_keypoints"]
     assert info["num_images"] == len(names) and info["num_images_without_mask"] == 0
+
+
+def test_masks_given_by_a_relative_path_are_recorded_whole(synthetic_scene, tmp_path, run_cli, monkeypatch):
+    """`--masks masks` from the images' parent: run.json records the whole path, so that an export
+    made from another folder still finds them."""
+    images, _ = synthetic_scene
+    names = sorted(os.listdir(images))
+    _write_masks(images, tmp_path / "masks", names)
+    monkeypatch.chdir(tmp_path)
+    assert_ok(run_cli("run", images, tmp_path / "out", "-q", "--masks", "masks"))
+    recorded = json.loads((tmp_path / "out" / "run.json").read_text())["config"]["extract"]["mask_path"]
+    assert recorded == str(tmp_path / "masks")
+    monkeypatch.chdir(images)
+    assert_ok(run_cli("export", tmp_path / "out", tmp_path / "ns", "--format", "nerfstudio", "-q"))
+    assert all("mask_path" in f for f in json.loads((tmp_path / "ns" / "transforms.json").read_text())["frames"])

@@ -65,6 +65,9 @@ def _add_masks(job: ExportJob, data: model.ModelData, rename: dict[str, str], me
     folder = masks.run_mask_folder(job.out_dir)
     if folder is None:
         return
+    if not folder.exists():
+        logger.warning("the run's masks (%s) are gone: exported without them", folder)
+        return
     if undistorted:
         logger.warning("the run's masks are not exported beside undistorted images; export without --undistort "
                        "to keep them")

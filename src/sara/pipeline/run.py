@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from .. import colmap, extract, incremental, mapping, masks, match, video, weights
-from ..config import PipelineConfig
+from ..config import PipelineConfig, apply_overrides
 from ..execute import Executor, make_executor
 from ..features import BACKENDS as FEATURE_BACKENDS
 from ..io import NoResultError, OutputLock, fingerprint, prepare_output_dir, records, write_text_atomic
@@ -37,6 +37,8 @@ def run(conf: PipelineConfig, images_root: Path, out_dir: Path, *, gt_dir: Path 
     if stop_after not in (None, "extract", "pairs"):
         raise ValueError(f"stop_after must be extract or pairs, not {stop_after!r}")
     out_dir, images_root = Path(out_dir), Path(images_root)
+    if conf.extract.mask_path:  # recorded whole in run.json: an export from another folder finds the masks
+        conf = apply_overrides(conf, {"extract.mask_path": str(Path(conf.extract.mask_path).expanduser().resolve())})
     preflight(conf, extract_only=stop_after == "extract")  # a bad option or --pairs fails before any work
     if gt_dir is not None:
         _check_ground_truth(Path(gt_dir), images_root)
